@@ -1,0 +1,164 @@
+"""The one backend contract, in joint space, that everything above the HAL uses.
+
+Lifecycle (after ros2_control): UNCONFIGURED -> configure() -> INACTIVE (reads, never commands)
+-> activate() -> ACTIVE (commands) ; any fault -> FAULT (damping), left only by an explicit reset().
+A tick is read() -> controller -> write(). Time passes between reads: on a robot by itself, in the mock
+because read() advances the physics by one loop period with what the motors were last told to do.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from abc import ABC, abstractmethod
+
+from bruce_hw.config import RobotConfig
+from bruce_hw.types import GroundTruth, JointCommand, RobotState
+
+log = logging.getLogger("bruce_hw")
+
+
+class LifecycleState(enum.Enum):
+    UNCONFIGURED = "unconfigured"
+    INACTIVE = "inactive"
+    ACTIVE = "active"
+    FAULT = "fault"
+
+
+class LifecycleError(RuntimeError):
+    """An operation the backend's current lifecycle state does not allow."""
+
+
+class BackendError(RuntimeError):
+    """A backend could not be built, started, read or written."""
+
+
+class Backend(ABC):
+    name: str = "backend"
+
+    def __init__(self, config: RobotConfig):
+        self.config = config
+        self._state = LifecycleState.UNCONFIGURED
+        self.fault_cause: str | None = None
+
+    @property
+    def state(self) -> LifecycleState:
+        return self._state
+
+    def _require(self, operation: str, *allowed: LifecycleState) -> None:
+        if self._state not in allowed:
+            names = " or ".join(s.value for s in allowed)
+            raise LifecycleError(f"{self.name} backend: {operation} needs state {names}, "
+                                 f"but the backend is {self._state.value}")
+
+    # -- transitions -------------------------------------------------------------------------------------
+    def configure(self) -> None:
+        self._require("configure", LifecycleState.UNCONFIGURED)
+        self._on_configure()
+        self._state = LifecycleState.INACTIVE
+
+    def activate(self) -> None:
+        self._require("activate", LifecycleState.INACTIVE)
+        self._on_activate()
+        self._state = LifecycleState.ACTIVE
+
+    def deactivate(self) -> None:
+        self._require("deactivate", LifecycleState.ACTIVE)
+        self._on_deactivate()
+        self._state = LifecycleState.INACTIVE
+
+    def fault(self, cause: str) -> None:
+        """Enter the damping state now. Idempotent: the first cause is kept."""
+        self._require("fault", LifecycleState.INACTIVE, LifecycleState.ACTIVE, LifecycleState.FAULT)
+        if self._state is LifecycleState.FAULT:
+            return
+        self._on_fault()
+        self._state = LifecycleState.FAULT
+        self.fault_cause = cause
+        log.warning("%s backend: damping (%s)", self.name, cause)
+
+    def reset(self) -> None:
+        """Leave FAULT for INACTIVE; never automatic."""
+        self._require("reset", LifecycleState.FAULT)
+        self._on_reset()
+        self.fault_cause = None
+        self._state = LifecycleState.INACTIVE
+
+    def shutdown(self) -> None:
+        """From any state back to UNCONFIGURED; an active robot goes through damping first."""
+        if self._state is LifecycleState.UNCONFIGURED:
+            return
+        if self._state is LifecycleState.ACTIVE:
+            self._on_fault()
+        self._on_shutdown()
+        self._state = LifecycleState.UNCONFIGURED
+
+    # -- per tick ----------------------------------------------------------------------------------------
+    def read(self) -> RobotState:
+        self._require("read", LifecycleState.INACTIVE, LifecycleState.ACTIVE, LifecycleState.FAULT)
+        return self._read()
+
+    def write(self, command: JointCommand) -> None:
+        if self._state is not LifecycleState.ACTIVE:
+            raise LifecycleError(f"{self.name} backend: command refused, the backend is {self._state.value} "
+                                 "(only an active backend takes commands)")
+        if command.tau_ff.shape != (self.config.n_joints,):
+            raise ValueError(f"{self.name} backend: JointCommand.tau_ff has shape {command.tau_ff.shape}, "
+                             f"expected ({self.config.n_joints},) in the order of joints.names")
+        self._write(command)
+
+    def ground_truth(self) -> GroundTruth | None:
+        """Simulator truth for evaluation; None on a real robot."""
+        return None
+
+    def __enter__(self) -> Backend:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.shutdown()
+
+    # -- what a backend implements -----------------------------------------------------------------------
+    @abstractmethod
+    def _on_configure(self) -> None: ...
+
+    def _on_activate(self) -> None:
+        """Enable the motors."""
+
+    def _on_deactivate(self) -> None:
+        """Disable the motors (no torque)."""
+
+    @abstractmethod
+    def _on_fault(self) -> None:
+        """Put every motor into damping."""
+
+    def _on_reset(self) -> None:
+        """Clear device errors before INACTIVE."""
+
+    def _on_shutdown(self) -> None:
+        """Release devices."""
+
+    @abstractmethod
+    def _read(self) -> RobotState: ...
+
+    @abstractmethod
+    def _write(self, command: JointCommand) -> None: ...
+
+
+BACKENDS = ("mock", "echo", "hw")
+
+
+def make_backend(name: str, config: RobotConfig, **options) -> Backend:
+    """The backend called `name`, built from the robot config (not yet configured)."""
+    if name == "mock":
+        from bruce_hw.mock import MujocoBackend
+
+        return MujocoBackend(config, **options)
+    if name == "echo":
+        from bruce_hw.echo import EchoBackend
+
+        return EchoBackend(config, **options)
+    if name == "hw":
+        from bruce_hw.hw import make_hw_backend
+
+        return make_hw_backend(config, **options)
+    raise BackendError(f"unknown backend {name!r} (expected one of {', '.join(BACKENDS)})")

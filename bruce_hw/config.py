@@ -1,0 +1,372 @@
+"""Robot description: YAML -> validated, typed objects.
+
+Every joint-space array is ordered as `joints.names`. A bad file fails with one `ConfigError` that names the
+file, the dotted key path and what was expected, before anything talks to a robot.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from bruce_hw.coupling import Coupling
+
+DEFAULT_CONFIG = "configs/robots/bruce.yaml"
+_MODELS_DIR = Path(__file__).resolve().parent / "models"
+
+
+class ConfigError(ValueError):
+    """A robot config that cannot be used; the message names the file, the key and the expectation."""
+
+
+@dataclass(frozen=True, slots=True)
+class PdGains:
+    kp: np.ndarray
+    kd: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class SerialBus:
+    port: str
+    baud: int
+    ids: tuple[int, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class CanBus:
+    interface: str
+    channel: str
+
+
+@dataclass(frozen=True, slots=True)
+class Buses:
+    bear: SerialBus
+    dynamixel: SerialBus
+    sense: SerialBus
+    can: CanBus
+
+
+@dataclass(frozen=True, slots=True)
+class ArmConfig:
+    names: tuple[str, ...]
+    lower: np.ndarray
+    upper: np.ndarray
+    hold_pose: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class SafetyConfig:
+    damping_kd: float
+    soft_start_s: float
+
+
+@dataclass(frozen=True, slots=True)
+class RobotConfig:
+    path: Path
+    name: str
+    mjcf: Path
+    loop_hz: int
+    policy_hz: int
+    joints: tuple[str, ...]
+    q_lower: np.ndarray
+    q_upper: np.ndarray
+    tau_limit: np.ndarray
+    qd_limit: np.ndarray
+    standing_pose: np.ndarray
+    eq8: PdGains
+    eq9: PdGains
+    actuator_torque_limit: float
+    torque_per_amp: float
+    coupling: Coupling
+    arms: ArmConfig
+    safety: SafetyConfig
+    buses: Buses
+    raw: dict
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joints)
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.loop_hz
+
+    @property
+    def policy_decimation(self) -> int:
+        return self.loop_hz // self.policy_hz
+
+
+class _Reader:
+    """Typed access to a parsed YAML tree; every failure names the file and the dotted key."""
+
+    def __init__(self, path: Path, data: Any):
+        self.path = path
+        self.data = data
+
+    def fail(self, key: str, expected: str, got: Any = None, *, show_got: bool = True) -> ConfigError:
+        tail = f", got {got!r}" if show_got else ""
+        return ConfigError(f"{self.path}: {key}: expected {expected}{tail}")
+
+    def node(self, key: str) -> Any:
+        node = self.data
+        walked = []
+        for part in key.split("."):
+            if not isinstance(node, dict):
+                raise self.fail(".".join(walked), "a mapping", node)
+            if part not in node:
+                raise ConfigError(f"{self.path}: {key}: missing key (expected under '{'.'.join(walked) or '<top>'}')")
+            node = node[part]
+            walked.append(part)
+        return node
+
+    def mapping(self, key: str, allowed: set[str] | None = None) -> dict:
+        node = self.node(key)
+        if not isinstance(node, dict):
+            raise self.fail(key, "a mapping", node)
+        if allowed is not None:
+            unknown = sorted(set(node) - allowed)
+            if unknown:
+                raise ConfigError(f"{self.path}: {key}.{unknown[0]}: unknown key (expected one of {sorted(allowed)})")
+        return node
+
+    def number(self, key: str, *, positive: bool = False) -> float:
+        value = self.node(key)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise self.fail(key, "a number", value)
+        if positive and not value > 0:
+            raise self.fail(key, "a number > 0", value)
+        return float(value)
+
+    def integer(self, key: str, *, positive: bool = False) -> int:
+        value = self.node(key)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.fail(key, "an integer", value)
+        if positive and value <= 0:
+            raise self.fail(key, "an integer > 0", value)
+        return value
+
+    def string(self, key: str) -> str:
+        value = self.node(key)
+        if not isinstance(value, str) or not value:
+            raise self.fail(key, "a non-empty string", value)
+        return value
+
+    def names(self, key: str, length: int | None = None) -> tuple[str, ...]:
+        value = self.node(key)
+        if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
+            raise self.fail(key, "a list of names", value)
+        if length is not None and len(value) != length:
+            raise self.fail(key, f"a list of {length} names, got {len(value)}", show_got=False)
+        if len(set(value)) != len(value):
+            raise self.fail(key, "unique names", value)
+        return tuple(value)
+
+    def vector(self, key: str, length: int, value: Any = None) -> np.ndarray:
+        """A list of `length` numbers at `key` (or `value`, already looked up, reported as `key`)."""
+        value = self.node(key) if value is None else value
+        if not isinstance(value, list):
+            raise self.fail(key, f"a list of {length} numbers", value)
+        if len(value) != length:
+            raise self.fail(key, f"a list of {length} numbers, got {len(value)} entries", show_got=False)
+        for i, v in enumerate(value):
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                raise self.fail(f"{key}[{i}]", "a number", v)
+        return np.asarray(value, dtype=np.float64)
+
+    def per_joint(self, key: str, joints: tuple[str, ...], width: int = 1) -> np.ndarray:
+        """A mapping joint name -> number (or [numbers] of `width`), returned in `joints` order."""
+        node = self.mapping(key)
+        unknown = [name for name in node if name not in joints]
+        if unknown:
+            raise ConfigError(f"{self.path}: {key}.{unknown[0]}: unknown joint (expected one of {list(joints)})")
+        missing = [name for name in joints if name not in node]
+        if missing:
+            raise ConfigError(f"{self.path}: {key}.{missing[0]}: missing joint (every joint of {list(joints)} "
+                              "needs a value)")
+        if width == 1:
+            return np.array([self.number(f"{key}.{name}") for name in joints])
+        return np.stack([self.vector(f"{key}.{name}", width) for name in joints])
+
+
+def _resolve_mjcf(config_path: Path, name: str, key: str) -> Path:
+    candidate = Path(name)
+    for path in (candidate if candidate.is_absolute() else config_path.parent / candidate, _MODELS_DIR / name):
+        if path.is_file():
+            return path.resolve()
+    raise ConfigError(f"{config_path}: {key}: model file {name!r} not found beside the config or in {_MODELS_DIR}")
+
+
+def _limits(r: _Reader, key: str, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    pairs = r.per_joint(key, names, width=2)
+    for name, (lo, hi) in zip(names, pairs, strict=True):
+        if not lo < hi:
+            raise r.fail(f"{key}.{name}", "[lower, upper] with lower < upper", [float(lo), float(hi)])
+    return pairs[:, 0].copy(), pairs[:, 1].copy()
+
+
+def _gains(r: _Reader, key: str, joints: tuple[str, ...]) -> PdGains:
+    r.mapping(key, {"kp", "kd"})
+    kp, kd = r.per_joint(f"{key}.kp", joints), r.per_joint(f"{key}.kd", joints)
+    for name, values in (("kp", kp), ("kd", kd)):
+        if np.any(values < 0):
+            bad = joints[int(np.argmax(values < 0))]
+            raise r.fail(f"{key}.{name}.{bad}", "a gain >= 0", float(values[joints.index(bad)]))
+    return PdGains(kp=kp, kd=kd)
+
+
+def _serial(r: _Reader, key: str, with_ids: bool, n_ids: int = 0) -> SerialBus:
+    allowed = {"port", "baud", "ids"} if with_ids else {"port", "baud"}
+    r.mapping(key, allowed)
+    ids: tuple[int, ...] = ()
+    if with_ids:
+        raw = r.node(f"{key}.ids")
+        if not isinstance(raw, list) or not all(isinstance(i, int) and not isinstance(i, bool) for i in raw):
+            raise r.fail(f"{key}.ids", "a list of integer device IDs", raw)
+        if len(raw) != n_ids:
+            raise r.fail(f"{key}.ids", f"a list of {n_ids} IDs, got {len(raw)}", show_got=False)
+        if len(set(raw)) != len(raw) or not all(0 <= i < 0xFE for i in raw):
+            raise r.fail(f"{key}.ids", "unique IDs in 0..253", raw)
+        ids = tuple(raw)
+    return SerialBus(port=r.string(f"{key}.port"), baud=r.integer(f"{key}.baud", positive=True), ids=ids)
+
+
+_TOP_KEYS = {"name", "mjcf", "rates", "joints", "gains", "actuators", "coupling", "arms", "safety", "buses"}
+
+
+def parse_config(data: Any, path: Path) -> RobotConfig:
+    r = _Reader(path, data)
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: <top>: expected a mapping of sections {sorted(_TOP_KEYS)}, got {data!r}")
+    unknown = sorted(set(data) - _TOP_KEYS)
+    if unknown:
+        raise ConfigError(f"{path}: {unknown[0]}: unknown key (expected one of {sorted(_TOP_KEYS)})")
+
+    r.mapping("rates", {"loop_hz", "policy_hz"})
+    loop_hz, policy_hz = r.integer("rates.loop_hz", positive=True), r.integer("rates.policy_hz", positive=True)
+    if loop_hz % policy_hz:
+        raise r.fail("rates.policy_hz", f"a divisor of rates.loop_hz ({loop_hz})", policy_hz)
+
+    r.mapping("joints", {"names", "position_limits", "torque_limits", "velocity_limits", "standing_pose"})
+    joints = r.names("joints.names")
+    n = len(joints)
+    q_lower, q_upper = _limits(r, "joints.position_limits", joints)
+    tau_limit = r.per_joint("joints.torque_limits", joints)
+    qd_limit = r.per_joint("joints.velocity_limits", joints)
+    for key, values in (("joints.torque_limits", tau_limit), ("joints.velocity_limits", qd_limit)):
+        if np.any(values <= 0):
+            raise r.fail(f"{key}.{joints[int(np.argmax(values <= 0))]}", "a limit > 0", float(values.min()))
+    standing = r.per_joint("joints.standing_pose", joints)
+    outside = (standing < q_lower) | (standing > q_upper)
+    if outside.any():
+        name = joints[int(np.argmax(outside))]
+        raise r.fail(f"joints.standing_pose.{name}", "a position inside joints.position_limits",
+                     float(standing[joints.index(name)]))
+
+    r.mapping("gains", {"eq8", "eq9"})
+    eq8, eq9 = _gains(r, "gains.eq8", joints), _gains(r, "gains.eq9", joints)
+
+    r.mapping("actuators", {"torque_limit", "torque_per_amp"})
+    r.mapping("coupling", {"joint_from_actuator"})
+    rows = r.node("coupling.joint_from_actuator")
+    if not isinstance(rows, list) or len(rows) != n:
+        got = len(rows) if isinstance(rows, list) else rows
+        raise r.fail("coupling.joint_from_actuator", f"a {n}x{n} matrix (one row per joint), got {got!r} rows",
+                     show_got=False)
+    matrix = np.stack([r.vector(f"coupling.joint_from_actuator[{i}]", n, row) for i, row in enumerate(rows)])
+    if abs(np.linalg.det(matrix)) < 1e-9:
+        raise r.fail("coupling.joint_from_actuator", "an invertible matrix", "singular", show_got=True)
+
+    r.mapping("arms", {"names", "position_limits", "hold_pose"})
+    arm_names = r.names("arms.names")
+    clash = set(arm_names) & set(joints)
+    if clash:
+        raise r.fail("arms.names", "names distinct from joints.names", sorted(clash))
+    arm_lower, arm_upper = _limits(r, "arms.position_limits", arm_names)
+    hold = r.per_joint("arms.hold_pose", arm_names)
+
+    r.mapping("safety", {"damping_kd", "soft_start_s"})
+    r.mapping("buses", {"bear", "dynamixel", "sense", "can"})
+    r.mapping("buses.can", {"interface", "channel"})
+    buses = Buses(
+        bear=_serial(r, "buses.bear", with_ids=True, n_ids=n),
+        dynamixel=_serial(r, "buses.dynamixel", with_ids=True, n_ids=len(arm_names)),
+        sense=_serial(r, "buses.sense", with_ids=False),
+        can=CanBus(interface=r.string("buses.can.interface"), channel=str(r.node("buses.can.channel"))),
+    )
+
+    return RobotConfig(
+        path=path,
+        name=r.string("name"),
+        mjcf=_resolve_mjcf(path, r.string("mjcf"), "mjcf"),
+        loop_hz=loop_hz,
+        policy_hz=policy_hz,
+        joints=joints,
+        q_lower=q_lower,
+        q_upper=q_upper,
+        tau_limit=tau_limit,
+        qd_limit=qd_limit,
+        standing_pose=standing,
+        eq8=eq8,
+        eq9=eq9,
+        actuator_torque_limit=r.number("actuators.torque_limit", positive=True),
+        torque_per_amp=r.number("actuators.torque_per_amp", positive=True),
+        coupling=Coupling(matrix),
+        arms=ArmConfig(names=arm_names, lower=arm_lower, upper=arm_upper, hold_pose=hold),
+        safety=SafetyConfig(damping_kd=r.number("safety.damping_kd"),
+                            soft_start_s=r.number("safety.soft_start_s", positive=True)),
+        buses=buses,
+        raw=data,
+    )
+
+
+def apply_overrides(data: dict, overrides: list[str], path: Path) -> dict:
+    """Apply `KEY=VALUE` overrides (dotted key paths, VALUE parsed as YAML) to a copy of the raw tree.
+
+    Only existing keys can be set, so a typo fails instead of being ignored.
+    """
+    data = copy.deepcopy(data)
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"{path}: --set {item!r}: expected KEY=VALUE with a dotted key path")
+        parts = key.split(".")
+        node = data
+        for depth, part in enumerate(parts):
+            if not isinstance(node, dict) or part not in node:
+                parent = ".".join(parts[:depth]) or "<top>"
+                raise ConfigError(f"{path}: {key}: no such key to --set (nothing named {part!r} under {parent})")
+            if depth == len(parts) - 1:
+                node[part] = yaml.safe_load(text) if text else ""
+            else:
+                node = node[part]
+    return data
+
+
+def resolve_config_path(path: str | Path = DEFAULT_CONFIG) -> Path:
+    """A config path as given; a relative `configs/robots/NAME.yaml` missing from the working directory falls
+    back to the copy installed with the package, so the default works from any directory."""
+    path = Path(path)
+    if path.is_file():
+        return path.resolve()
+    if not path.is_absolute() and path.parent.as_posix() == "configs/robots":
+        packaged = resources.files("configs.robots") / path.name
+        if packaged.is_file():
+            return Path(str(packaged))
+    raise ConfigError(f"{path}: robot config file not found")
+
+
+def load_config(path: str | Path = DEFAULT_CONFIG, overrides: list[str] | None = None) -> RobotConfig:
+    resolved = resolve_config_path(path)
+    try:
+        data = yaml.safe_load(resolved.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{resolved}: not valid YAML: {exc}") from exc
+    if overrides:
+        data = apply_overrides(data, overrides, resolved)
+    return parse_config(data, resolved)

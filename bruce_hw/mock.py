@@ -1,0 +1,157 @@
+"""The MuJoCo `mock` backend: BRUCE's model stepped one loop period per tick.
+
+It reports what the robot's own sensors would (joint encoders and torques, the IMU, the four foot contact
+switches) and, separately, simulator ground truth for evaluation. Motors are emulated at the joint level:
+the command's torque (including any motor-side PD) is evaluated every physics step, saturated per actuator
+through the coupling, then by the joint box limits of the model's motors.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from bruce_hw.backend import Backend, BackendError, LifecycleState
+from bruce_hw.config import RobotConfig
+from bruce_hw.types import FootContacts, GroundTruth, ImuSample, JointCommand, JointState, RobotState
+
+IMU_SENSORS = ("imu_gyro", "imu_accel", "imu_quat")
+CONTACT_THRESHOLD_N = 1.0  # a toe/heel switch closes above this normal force
+AMBIENT_TEMPERATURE_C = 30.0  # the mock has no thermal model; it reports a constant winding temperature
+
+
+def _contiguous(indices: list[int], what: str, model_file: str) -> slice:
+    if indices != list(range(indices[0], indices[0] + len(indices))):
+        raise BackendError(f"{model_file}: {what} of the config's joints are not contiguous in the model: "
+                           f"{indices}")
+    return slice(indices[0], indices[0] + len(indices))
+
+
+class MujocoBackend(Backend):
+    name = "mock"
+
+    def __init__(self, config: RobotConfig, initial_q: np.ndarray | None = None):
+        super().__init__(config)
+        self.initial_q = config.standing_pose.copy() if initial_q is None else np.asarray(initial_q, float)
+        self.model: mujoco.MjModel | None = None
+        self.data: mujoco.MjData | None = None
+        self._command: JointCommand | None = None
+
+    # -- lifecycle ---------------------------------------------------------------------------------------
+    def _on_configure(self) -> None:
+        cfg = self.config
+        model_file = str(cfg.mjcf)
+        try:
+            model = mujoco.MjModel.from_xml_path(model_file)
+        except Exception as exc:  # mujoco raises ValueError with the parser's message
+            raise BackendError(f"{model_file}: cannot load the MuJoCo model: {exc}") from exc
+        if abs(model.opt.timestep - cfg.dt) > 1e-12:
+            raise BackendError(f"{model_file}: timestep {model.opt.timestep} s does not match the config's "
+                               f"loop period 1/rates.loop_hz = {cfg.dt} s")
+        qpos, dofs, acts = [], [], []
+        for name in cfg.joints:
+            jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+            if jid < 0:
+                raise BackendError(f"{model_file}: no joint named {name!r} (from joints.names)")
+            act = [a for a in range(model.nu)
+                   if model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT and model.actuator_trnid[a, 0] == jid]
+            if len(act) != 1:
+                raise BackendError(f"{model_file}: joint {name!r} needs exactly one motor, found {len(act)}")
+            qpos.append(int(model.jnt_qposadr[jid]))
+            dofs.append(int(model.jnt_dofadr[jid]))
+            acts.append(act[0])
+        self._qpos = _contiguous(qpos, "qpos addresses", model_file)
+        self._dofs = _contiguous(dofs, "dof addresses", model_file)
+        self._acts = _contiguous(acts, "motors", model_file)
+        self._sensor = {}
+        for name in (*IMU_SENSORS, "r_toe", "r_heel", "l_toe", "l_heel"):
+            sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, name)
+            if sid < 0:
+                raise BackendError(f"{model_file}: no sensor named {name!r} (the mock needs {IMU_SENSORS} and "
+                                   "one touch sensor per toe and heel)")
+            adr = int(model.sensor_adr[sid])
+            self._sensor[name] = slice(adr, adr + int(model.sensor_dim[sid]))
+        touch = [self._sensor[n].start for n in ("r_toe", "r_heel", "l_toe", "l_heel")]
+        self._touch = np.array(touch)
+        self._base = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "base")
+        if self._base < 0 or model.body_jntnum[self._base] != 1 or \
+                model.jnt_type[model.body_jntadr[self._base]] != mujoco.mjtJoint.mjJNT_FREE:
+            raise BackendError(f"{model_file}: the mock needs a body 'base' with a free joint")
+        self._soles = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, s) for s in ("r_sole", "l_sole")]
+        if min(self._soles) < 0:
+            raise BackendError(f"{model_file}: the mock needs sites 'r_sole' and 'l_sole' on the soles")
+        self.model = model
+        self.data = mujoco.MjData(model)
+        self._damping_kd = np.full(cfg.n_joints, cfg.safety.damping_kd)
+        self._zero = np.zeros(cfg.n_joints)
+        self._temperature = np.full(cfg.n_joints, AMBIENT_TEMPERATURE_C)
+        self.nominal_base_height = self._standing_height(cfg.standing_pose)
+        self.place(self.initial_q)
+
+    def _on_activate(self) -> None:
+        self._command = None  # motors enable with no stale goal: zero torque until the first write
+
+    def _on_deactivate(self) -> None:
+        self._command = None
+
+    def _on_fault(self) -> None:
+        self._command = None
+
+    def _on_shutdown(self) -> None:
+        self._command = None
+
+    # -- helpers -----------------------------------------------------------------------------------------
+    def _standing_height(self, q: np.ndarray) -> float:
+        """Base height at which the lower sole touches the floor with the base level and legs at q."""
+        data = mujoco.MjData(self.model)
+        data.qpos[0:7] = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+        data.qpos[self._qpos] = q
+        mujoco.mj_kinematics(self.model, data)
+        return float(-min(data.site_xpos[s][2] for s in self._soles))
+
+    def place(self, q: np.ndarray) -> None:
+        """Reset the simulation: legs at q, base level and at rest, soles on the floor."""
+        data = self.data
+        mujoco.mj_resetData(self.model, data)
+        data.qpos[0:3] = (0.0, 0.0, self._standing_height(q))
+        data.qpos[3:7] = (1.0, 0.0, 0.0, 0.0)
+        data.qpos[self._qpos] = q
+        mujoco.mj_forward(self.model, data)
+        self._command = None
+
+    # -- per tick ----------------------------------------------------------------------------------------
+    def _motor_torque(self) -> np.ndarray:
+        data = self.data
+        q, qd = data.qpos[self._qpos], data.qvel[self._dofs]
+        if self._state is LifecycleState.FAULT:
+            return -self._damping_kd * qd
+        if self._command is None:
+            return self._zero
+        tau = self._command.torque(q, qd)
+        if not np.all(np.isfinite(tau)):
+            raise BackendError("mock backend: non-finite joint torque commanded")
+        return self.config.coupling.saturate(tau, self.config.actuator_torque_limit)
+
+    def _read(self) -> RobotState:
+        data = self.data
+        data.ctrl[self._acts] = self._motor_torque()  # the model's motors clamp to the joint box limits
+        mujoco.mj_step(self.model, data)
+        t = data.time
+        s = data.sensordata
+        return RobotState(
+            joints=JointState(q=data.qpos[self._qpos].copy(), qd=data.qvel[self._dofs].copy(),
+                              tau=data.actuator_force[self._acts].copy(), temperature=self._temperature.copy(),
+                              stamp=t),
+            imu=ImuSample(gyro=s[self._sensor["imu_gyro"]].copy(), accel=s[self._sensor["imu_accel"]].copy(),
+                          orientation=s[self._sensor["imu_quat"]].copy(), stamp=t),
+            contacts=FootContacts(contact=s[self._touch] > CONTACT_THRESHOLD_N, stamp=t),
+        )
+
+    def _write(self, command: JointCommand) -> None:
+        self._command = command
+
+    def ground_truth(self) -> GroundTruth:
+        data = self.data
+        return GroundTruth(sim_time=float(data.time), base_pos=data.qpos[0:3].copy(),
+                           base_quat=data.qpos[3:7].copy(), base_linvel=data.qvel[0:3].copy(),
+                           base_angvel=data.qvel[3:6].copy())

@@ -1,0 +1,41 @@
+"""Real-time pacing by absolute deadlines on the monotonic clock.
+
+Sleep until shortly before the deadline, then spin: plain sleeps overshoot by tens of microseconds, and
+relative sleeps (sleep(dt - elapsed)) drift. A tick that starts past its deadline is late; if whole periods
+were missed, their ticks are skipped and counted, never run in a burst to catch up.
+"""
+
+from __future__ import annotations
+
+import time
+
+
+class Pacer:
+    def __init__(self, period_s: float, spin_s: float = 200e-6, late_after_s: float = 250e-6):
+        self.period_ns = round(period_s * 1e9)
+        self.spin_ns = round(spin_s * 1e9)
+        self.late_ns = round(late_after_s * 1e9)
+        self.deadline_ns = 0
+        self.late_ticks = 0
+        self.skipped_ticks = 0
+
+    def start(self) -> None:
+        self.deadline_ns = time.monotonic_ns() + self.period_ns
+
+    def wait(self) -> None:
+        """Block until the next tick's deadline."""
+        now = time.monotonic_ns()
+        behind = now - self.deadline_ns
+        if behind > self.late_ns:
+            self.late_ticks += 1
+            missed = behind // self.period_ns
+            if missed:
+                self.skipped_ticks += missed
+                self.deadline_ns += missed * self.period_ns
+        else:
+            remaining = self.deadline_ns - now - self.spin_ns
+            if remaining > 0:
+                time.sleep(remaining / 1e9)
+            while time.monotonic_ns() < self.deadline_ns:
+                pass
+        self.deadline_ns += self.period_ns

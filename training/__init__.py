@@ -1,0 +1,1 @@
+"""Simulator data collection, the physics-informed dynamics network and its baselines, ONNX export."""
