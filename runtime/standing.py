@@ -22,8 +22,8 @@ from bruce_hw.types import ImuSample, RobotState
 COM_POSITION_GAIN = 2.0     # K_x, in units of the toppling stiffness m g (must exceed 1)
 COM_VELOCITY_GAIN = 0.3     # K_v, s
 COM_VELOCITY_FILTER = 0.5   # first-order smoothing of the finite-difference CoM velocity (0 = none)
-LATERAL_POSITION_GAIN = 0  # rad of hip roll per m of lateral CoM offset
-LATERAL_VELOCITY_GAIN = 0  # rad of hip roll per m/s of lateral CoM velocity
+LATERAL_POSITION_GAIN = 1.0 # rad of hip roll per m of lateral CoM offset
+LATERAL_VELOCITY_GAIN = 0.5 # rad of hip roll per m/s of lateral CoM velocity
 SAG_INTEGRAL_GAIN = 1.0     # 1/s
 SAG_INTEGRAL_LIMIT = 0.15   # rad
 SUPPORT_SITES = ("r_toe", "r_heel", "l_toe", "l_heel")

@@ -1,0 +1,64 @@
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from runtime.cli import main
+
+STATS_KEYS = {"ticks", "sim_time", "fell", "base_height_min", "base_height_max", "base_xy_start", "base_xy_end",
+              "base_yaw_end", "final_state", "stop_cause"}
+
+
+def test_mock_run_writes_stats_with_ground_truth(tmp_path, capsys):
+    stats = tmp_path / "out" / "stats.json"
+    assert main(["--backend", "mock", "--duration", "0.5", "--stats", str(stats)]) == 0
+    data = json.loads(stats.read_text())
+    assert STATS_KEYS <= data.keys()
+    assert data["ticks"] == 500 and data["fell"] is False and data["stop_cause"] == "duration reached"
+    assert "500 ticks" in capsys.readouterr().out
+
+
+def test_realtime_run_is_paced_to_the_wall_clock(tmp_path):
+    stats = tmp_path / "stats.json"
+    start = time.monotonic()
+    assert main(["--duration", "0.3", "--realtime", "--stats", str(stats)]) == 0
+    assert time.monotonic() - start >= 0.3
+    data = json.loads(stats.read_text())
+    assert data["realtime"] is True and data["ticks"] + data["skipped_ticks"] >= 300
+
+
+def test_hw_backend_answers_with_what_is_missing(capsys):
+    assert main(["--backend", "hw", "--set", "buses.bear.port=/dev/does-not-exist"]) == 2
+    err = capsys.readouterr().err
+    assert "backend 'hw' cannot start" in err and "/dev/does-not-exist (buses.bear.port)" in err
+
+
+def test_bad_override_names_the_key(capsys):
+    assert main(["--set", "buses.bear.prot=/dev/ttyUSB3", "--duration", "0.1"]) == 2
+    assert "buses.bear.prot" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_signal_ends_in_damping_with_a_clean_exit_and_stats(tmp_path, sig):
+    stats = tmp_path / "stats.json"
+    proc = subprocess.Popen([sys.executable, "-m", "runtime.cli", "--realtime", "--stats", str(stats)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        time.sleep(3.0)  # imports, model load, start-up
+        assert proc.poll() is None, proc.communicate()
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    data = json.loads(stats.read_text())
+    assert data["stop_cause"] == sig.name
+    assert data["final_state"] == "fault: damping"
+    assert data["ticks"] > 0 and data["fell"] is False
+    assert f"final state: fault: damping ({sig.name})" in out
+    assert f"damping ({sig.name})" in err  # the one log line of the transition
