@@ -131,6 +131,9 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         controller = StandingController(config)
         controller.reset(state.joints.q)
         backend.activate()
+        until = "until Ctrl-C" if duration is None else f"for {duration:g} s"
+        print(f"bruce-run: {backend.name} backend active, standing {until}"
+              f"{' (paced to the wall clock)' if realtime else ''}", flush=True)
 
         n_ticks = None if duration is None else round(duration * config.loop_hz)
         decimation = config.policy_decimation

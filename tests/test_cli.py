@@ -49,8 +49,9 @@ def test_signal_ends_in_damping_with_a_clean_exit_and_stats(tmp_path, sig):
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
-        time.sleep(3.0)  # imports, model load, start-up
-        assert proc.poll() is None, proc.communicate()
+        started = proc.stdout.readline()  # printed once the backend is active and the handlers are in place
+        assert "backend active" in started, proc.communicate()
+        time.sleep(0.5)
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=30)
     finally:
@@ -60,5 +61,5 @@ def test_signal_ends_in_damping_with_a_clean_exit_and_stats(tmp_path, sig):
     assert data["stop_cause"] == sig.name
     assert data["final_state"] == "fault: damping"
     assert data["ticks"] > 0 and data["fell"] is False
-    assert f"final state: fault: damping ({sig.name})" in out
+    assert f"final state: fault: damping ({sig.name})" in started + out
     assert f"damping ({sig.name})" in err  # the one log line of the transition
