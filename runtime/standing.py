@@ -43,8 +43,8 @@ def tilt_quaternion(imu: ImuSample) -> np.ndarray:
     if s < 1e-12:
         return np.array([1.0, 0.0, 0.0, 0.0])
     angle = np.arctan2(s, c)
-    axis_body = axis / s
-    return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis_body])
+    axis = axis / s
+    return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
 
 
 class StandingController:
@@ -55,7 +55,7 @@ class StandingController:
         self.ankles = np.array([i for i, name in enumerate(config.joints) if name.endswith("ankle")])
         self.rolls = np.array([i for i, name in enumerate(config.joints) if name.endswith("hip_roll")])
         # Gravity loads the sagittal joints; an integral on yaw/roll only feeds the lateral sway mode.
-        self.others = np.array([i for i, name in enumerate(config.joints) if name.endswith(("hip_pitch", "knee"))])
+        self.sagittal = np.array([i for i, name in enumerate(config.joints) if name.endswith(("hip_pitch", "knee"))])
         self.model = mujoco.MjModel.from_xml_path(str(config.mjcf))
         self.kin = mujoco.MjData(self.model)
         self.legs = np.array([self.model.jnt_qposadr[self.model.joint(n).id] for n in config.joints])
@@ -68,7 +68,7 @@ class StandingController:
         """Start the soft start from the pose the robot is in now."""
         self.start = np.array(q_measured, dtype=float)
         self.step = 0
-        self.sag = np.zeros(len(self.others))
+        self.sag = np.zeros(len(self.sagittal))
         self.com_offset: np.ndarray | None = None
         self.com_velocity = np.zeros(2)
 
@@ -102,8 +102,8 @@ class StandingController:
         a[self.rolls] += LATERAL_POSITION_GAIN * dy + LATERAL_VELOCITY_GAIN * vy
 
         if self.step >= self.ramp_steps:
-            err = stand[self.others] - q[self.others]
+            err = stand[self.sagittal] - q[self.sagittal]
             self.sag = np.clip(self.sag + SAG_INTEGRAL_GAIN * self.dt * err, -SAG_INTEGRAL_LIMIT, SAG_INTEGRAL_LIMIT)
-        a[self.others] += self.sag
+        a[self.sagittal] += self.sag
         self.step += 1
         return a
