@@ -101,6 +101,10 @@ class RobotConfig:
     def policy_decimation(self) -> int:
         return self.loop_hz // self.policy_hz
 
+    def joint_indices(self, *kinds: str) -> np.ndarray:
+        """Indices of the joints whose names end with any of `kinds` (e.g. "ankle", "hip_roll"), both legs."""
+        return np.array([i for i, name in enumerate(self.joints) if name.endswith(kinds)], dtype=int)
+
 
 class _Reader:
     """Typed access to a parsed YAML tree; every failure names the file and the dotted key."""

@@ -52,10 +52,10 @@ class StandingController:
         self.config = config
         self.dt = 1.0 / config.policy_hz
         self.ramp_steps = max(1, round(config.safety.soft_start_s * config.policy_hz))
-        self.ankles = np.array([i for i, name in enumerate(config.joints) if name.endswith("ankle")])
-        self.rolls = np.array([i for i, name in enumerate(config.joints) if name.endswith("hip_roll")])
+        self.ankles = config.joint_indices("ankle")
+        self.rolls = config.joint_indices("hip_roll")
         # Gravity loads the sagittal joints; an integral on yaw/roll only feeds the lateral sway mode.
-        self.sagittal = np.array([i for i, name in enumerate(config.joints) if name.endswith(("hip_pitch", "knee"))])
+        self.sagittal = config.joint_indices("hip_pitch", "knee")
         self.model = mujoco.MjModel.from_xml_path(str(config.mjcf))
         self.kin = mujoco.MjData(self.model)
         self.legs = np.array([self.model.jnt_qposadr[self.model.joint(n).id] for n in config.joints])

@@ -12,7 +12,9 @@ LEG = ("hip_yaw", "hip_pitch", "hip_roll", "knee", "ankle")
 
 def test_default_config_follows_the_hardware_order_and_the_paper(config):
     assert config.joints == tuple(f"{side}_{j}" for side in ("r", "l") for j in LEG)
-    ankle = np.array([n.endswith("ankle") for n in config.joints])
+    ankle = np.zeros(config.n_joints, dtype=bool)
+    ankle[config.joint_indices("ankle")] = True
+    assert [config.joints[i] for i in config.joint_indices("ankle")] == ["r_ankle", "l_ankle"]
     assert np.all(config.eq8.kp[ankle] == 2.5) and np.all(config.eq8.kd[ankle] == 0.35)
     assert np.all(config.eq8.kp[~ankle] == 20.0) and np.all(config.eq8.kd[~ankle] == 0.7)
     assert np.all(config.eq9.kp[ankle] == 10.0) and np.all(config.eq9.kd[ankle] == 1.0)
