@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import time
 from abc import ABC, abstractmethod
 
 from bruce_hw.config import RobotConfig
@@ -106,6 +107,10 @@ class Backend(ABC):
             raise ValueError(f"{self.name} backend: JointCommand.tau_ff has shape {command.tau_ff.shape}, "
                              f"expected ({self.config.n_joints},) in the order of joints.names")
         self._write(command)
+
+    def clock(self) -> float:
+        """Now, on the clock of the stamps this backend puts on its data (for the sensor-age check)."""
+        return time.monotonic()
 
     def ground_truth(self) -> GroundTruth | None:
         """Simulator truth for evaluation; None on a real robot."""

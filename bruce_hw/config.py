@@ -63,7 +63,22 @@ class ArmConfig:
 @dataclass(frozen=True, slots=True)
 class SafetyConfig:
     damping_kd: float
+    damping_hold_s: float
     soft_start_s: float
+    torque_ramp_s: float
+    position_margin: float
+    max_torque_rate: float
+    tilt_limit_deg: float
+    tilt_ticks: int
+    max_sensor_age_s: float
+    overrun_streak: int
+
+
+@dataclass(frozen=True, slots=True)
+class ModelsConfig:
+    policy: Path | None       # ONNX walking policy; None: the standing controller
+    gait_period_s: float
+    pinn: Path | None         # ONNX PINN for --transfer pinn
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,6 +101,7 @@ class RobotConfig:
     coupling: Coupling
     arms: ArmConfig
     safety: SafetyConfig
+    models: ModelsConfig
     buses: Buses
     raw: dict
 
@@ -240,7 +256,47 @@ def _serial(r: _Reader, key: str, with_ids: bool, n_ids: int = 0) -> SerialBus:
     return SerialBus(port=r.string(f"{key}.port"), baud=r.integer(f"{key}.baud", positive=True), ids=ids)
 
 
-_TOP_KEYS = {"name", "mjcf", "rates", "joints", "gains", "actuators", "coupling", "arms", "safety", "buses"}
+_TOP_KEYS = {"name", "mjcf", "rates", "joints", "gains", "actuators", "coupling", "arms", "safety", "policy", "pinn",
+             "buses"}
+
+_SAFETY_KEYS = {"damping_kd", "damping_hold_s", "soft_start_s", "torque_ramp_s", "position_margin", "max_torque_rate",
+                "tilt_limit_deg", "tilt_ticks", "max_sensor_age_s", "overrun_streak"}
+
+
+def _safety(r: _Reader) -> SafetyConfig:
+    r.mapping("safety", _SAFETY_KEYS)
+    return SafetyConfig(
+        damping_kd=r.number("safety.damping_kd"),
+        damping_hold_s=r.number("safety.damping_hold_s"),
+        soft_start_s=r.number("safety.soft_start_s", positive=True),
+        torque_ramp_s=r.number("safety.torque_ramp_s"),
+        position_margin=r.number("safety.position_margin"),
+        max_torque_rate=r.number("safety.max_torque_rate", positive=True),
+        tilt_limit_deg=r.number("safety.tilt_limit_deg", positive=True),
+        tilt_ticks=r.integer("safety.tilt_ticks", positive=True),
+        max_sensor_age_s=r.number("safety.max_sensor_age_s", positive=True),
+        overrun_streak=r.integer("safety.overrun_streak", positive=True),
+    )
+
+
+def _model_file(r: _Reader, key: str) -> Path | None:
+    """An optional model path (None when null), resolved beside the config; existence is checked at load time
+    by the runtime, which names the file."""
+    value = r.node(key)
+    if value is None:
+        return None
+    if not isinstance(value, str) or not value:
+        raise r.fail(key, "a model file path or null", value)
+    path = Path(value)
+    return path if path.is_absolute() else (r.path.parent / path)
+
+
+def _models(r: _Reader) -> ModelsConfig:
+    r.mapping("policy", {"model", "gait_period_s"})
+    r.mapping("pinn", {"model"})
+    return ModelsConfig(policy=_model_file(r, "policy.model"),
+                        gait_period_s=r.number("policy.gait_period_s", positive=True),
+                        pinn=_model_file(r, "pinn.model"))
 
 
 def parse_config(data: Any, path: Path) -> RobotConfig:
@@ -294,7 +350,6 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
     arm_lower, arm_upper = _limits(r, "arms.position_limits", arm_names)
     hold = r.per_joint("arms.hold_pose", arm_names)
 
-    r.mapping("safety", {"damping_kd", "soft_start_s"})
     r.mapping("buses", {"bear", "dynamixel", "sense", "can"})
     r.mapping("buses.can", {"interface", "channel"})
     buses = Buses(
@@ -322,8 +377,8 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
         torque_per_amp=r.number("actuators.torque_per_amp", positive=True),
         coupling=Coupling(matrix),
         arms=ArmConfig(names=arm_names, lower=arm_lower, upper=arm_upper, hold_pose=hold),
-        safety=SafetyConfig(damping_kd=r.number("safety.damping_kd"),
-                            soft_start_s=r.number("safety.soft_start_s", positive=True)),
+        safety=_safety(r),
+        models=_models(r),
         buses=buses,
         raw=data,
     )

@@ -33,5 +33,5 @@ class Coupling:
 
     def saturate(self, joint_torques: np.ndarray, actuator_limit: float) -> np.ndarray:
         """Joint torques after each actuator saturates at +-actuator_limit, as the motors themselves do."""
-        tau_m = np.clip(self.actuator_torques(joint_torques), -actuator_limit, actuator_limit)
+        tau_m = np.minimum(np.maximum(self.actuator_torques(joint_torques), -actuator_limit), actuator_limit)
         return self.joint_torques(tau_m)

@@ -34,6 +34,9 @@ class EchoBackend(Backend):
         self.qd[:] = 0.0
         self.tau[:] = 0.0
 
+    def clock(self) -> float:
+        return self.time  # stamps are the echo's own tick time
+
     def _read(self) -> RobotState:
         self.time += self.config.dt
         t = self.time

@@ -36,6 +36,7 @@ class MujocoBackend(Backend):
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
         self._command: JointCommand | None = None
+        self.estop_pressed = False  # the mock's emergency-stop input, reported in every RobotState
 
     # -- lifecycle ---------------------------------------------------------------------------------------
     def _on_configure(self) -> None:
@@ -145,10 +146,18 @@ class MujocoBackend(Backend):
             imu=ImuSample(gyro=s[self._sensor["imu_gyro"]].copy(), accel=s[self._sensor["imu_accel"]].copy(),
                           orientation=s[self._sensor["imu_quat"]].copy(), stamp=t),
             contacts=FootContacts(contact=s[self._touch] > CONTACT_THRESHOLD_N, stamp=t),
+            estop=self.estop_pressed,
         )
 
     def _write(self, command: JointCommand) -> None:
         self._command = command
+
+    def clock(self) -> float:
+        return float(self.data.time)  # stamps are simulated time
+
+    def body_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """World positions (nbody, 3) and orientations (nbody, 4; w, x, y, z) of every body, for display."""
+        return self.data.xpos.copy(), self.data.xquat.copy()
 
     def ground_truth(self) -> GroundTruth:
         data = self.data

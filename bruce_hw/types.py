@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 FOOT_CONTACT_NAMES = ("r_toe", "r_heel", "l_toe", "l_heel")  # the sense board's contact bit order
+
+
+def all_finite(*arrays: np.ndarray) -> bool:
+    """No NaN or inf in any of the (small, 1-D) arrays; a dot product per array, the cheapest check for 10
+    elements (it also rejects magnitudes beyond 1e154, which no sensor, torque or model output has)."""
+    return all(math.isfinite(a @ a) for a in arrays)
 
 
 @dataclass(slots=True)
@@ -63,6 +70,7 @@ class RobotState:
     joints: JointState
     imu: ImuSample
     contacts: FootContacts
+    estop: bool = False  # an emergency-stop input is asserted (sense board button, wireless stop)
 
 
 @dataclass(slots=True)

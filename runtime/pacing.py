@@ -1,8 +1,8 @@
 """Real-time pacing by absolute deadlines on the monotonic clock.
 
 Sleep until shortly before the deadline, then spin: plain sleeps overshoot by tens of microseconds, and
-relative sleeps (sleep(dt - elapsed)) drift. A tick that starts past its deadline is late; if whole periods
-were missed, their ticks are skipped and counted, never run in a burst to catch up.
+relative sleeps (sleep(dt - elapsed)) drift. A tick that starts more than `late_after_s` past its deadline is
+late; if whole periods were missed, their ticks are skipped and counted, never run in a burst to catch up.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ class Pacer:
     def start(self) -> None:
         self.deadline_ns = time.monotonic_ns() + self.period_ns
 
-    def wait(self) -> None:
-        """Block until the next tick's deadline."""
+    def wait(self) -> int:
+        """Block until this tick's deadline; returns how far past it the tick starts (ns, >= 0)."""
         now = time.monotonic_ns()
         behind = now - self.deadline_ns
         if behind > self.late_ns:
@@ -36,6 +36,8 @@ class Pacer:
             remaining = self.deadline_ns - now - self.spin_ns
             if remaining > 0:
                 time.sleep(remaining / 1e9)
-            while time.monotonic_ns() < self.deadline_ns:
+            while (now := time.monotonic_ns()) < self.deadline_ns:
                 pass
+            behind = now - self.deadline_ns
         self.deadline_ns += self.period_ns
+        return behind

@@ -1,31 +1,48 @@
-"""One `bruce-run` session: start-up, the read -> update -> write loop, and shutdown on every exit path.
+"""One `bruce-run` session: start-up, the 1 kHz read -> update -> write loop, and shutdown on every exit path.
 
-Start-up follows the robot: configure (inactive, reads only) -> read the measured pose -> activate -> soft
-start to the standing pose -> hold with the Eq. 8 PD. SIGINT/SIGTERM, the end of `--duration` and any error
-all end in the backend's damping state, a printed summary and, with `--stats`, a JSON file.
+Start-up follows the robot: configure (inactive, reads only) -> load and check the models, warm up their
+sessions -> read the measured pose -> start telemetry -> ask for real-time scheduling -> activate -> loop.
+A tick: read -> safety triggers -> policy (every `policy_decimation` ticks) -> Eq. 8 -> PINN -> Eq. 9 ->
+safety filter -> write -> telemetry. A trip of the safety stage (or SIGINT/SIGTERM) puts the backend into
+its damping state at once and holds it for `safety.damping_hold_s` while still reading; the end of
+`--duration` shuts the backend down (through damping). Every exit prints a summary and, with `--stats`,
+writes it as JSON. Garbage collection is frozen and disabled inside the loop: the loop's allocations are
+acyclic and freed by reference counting.
 """
 
 from __future__ import annotations
 
+import gc
 import json
+import logging
 import math
+import queue
 import signal
 import sys
 import time
 from dataclasses import asdict, dataclass, field
+from logging.handlers import QueueHandler, QueueListener
 from pathlib import Path
 
 import numpy as np
 
-from bruce_hw.backend import Backend, LifecycleState
+from bruce_hw.backend import Backend, BackendError, LifecycleState
 from bruce_hw.config import RobotConfig
 from bruce_hw.types import GroundTruth, JointCommand
-from runtime.mixing import eq8_torque
+from runtime.estimation import GroundTruthEstimator, tilt_angle
+from runtime.inference import ModelError, OnnxPinn, OnnxPolicy
+from runtime.loopstats import LoopStats
+from runtime.mixing import TRANSFERS, eq8_torque, eq9_torque
 from runtime.pacing import Pacer
+from runtime.policy import ObservationBuilder, PolicyController
+from runtime.realtime import RealtimeGrant, request_realtime
+from runtime.safety import SafetyStage, SafetyState
 from runtime.standing import StandingController
 
 FALL_HEIGHT_FRACTION = 0.6   # fallen when the base is below this share of its nominal standing height
 FALL_TILT_RAD = math.pi / 4  # ... or the base is tilted more than this
+AT_REST_QD = 0.05            # rad/s: the damping hold ends early once every joint is this slow ...
+AT_REST_TICKS = 100          # ... for this many ticks in a row
 
 
 def yaw_of(quat: np.ndarray) -> float:
@@ -69,18 +86,23 @@ class GroundTruthLog:
 @dataclass
 class RunSummary:
     backend: str
+    transfer: str = "direct"
     ticks: int = 0
     wall_time: float = 0.0
     realtime: bool = False
-    late_ticks: int = 0
-    skipped_ticks: int = 0
     final_state: str = "unconfigured"
     stop_cause: str | None = None
     error: str | None = None
-    truth: GroundTruthLog | None = field(default=None)
+    telemetry_dropped: int = 0
+    loop: LoopStats = field(default_factory=LoopStats)
+    realtime_grant: RealtimeGrant | None = None
+    truth: GroundTruthLog | None = None
 
     def to_json(self) -> dict:
-        out = {k: v for k, v in asdict(self).items() if k != "truth"}
+        out = {k: v for k, v in asdict(self).items() if k not in ("truth", "loop", "realtime_grant")}
+        out.update(self.loop.to_json())
+        out["ticks"] = self.ticks
+        out["realtime_grant"] = self.realtime_grant.to_json() if self.realtime_grant else None
         if self.truth is not None:
             out.update(asdict(self.truth))
             for key in ("base_height_min", "base_height_max"):
@@ -89,7 +111,8 @@ class RunSummary:
         return out
 
     def text(self) -> str:
-        lines = [f"bruce-run: {self.backend} backend, {self.ticks} ticks in {self.wall_time:.2f} s wall"]
+        lines = [f"bruce-run: {self.backend} backend, transfer {self.transfer}, {self.ticks} ticks in "
+                 f"{self.wall_time:.2f} s wall"]
         if self.truth is not None:
             t = self.truth
             speed = t.sim_time / self.wall_time if self.wall_time > 0 else float("nan")
@@ -97,8 +120,9 @@ class RunSummary:
             if self.ticks:
                 lines.append(f"  base height {t.base_height_min:.3f}..{t.base_height_max:.3f} m "
                              f"(nominal {t.nominal_base_height:.3f} m), fell: {'yes' if t.fell else 'no'}")
-        if self.realtime:
-            lines.append(f"  paced: {self.late_ticks} late ticks, {self.skipped_ticks} skipped")
+        lines.append(self.loop.text())
+        if self.telemetry_dropped:
+            lines.append(f"  telemetry: {self.telemetry_dropped} rows dropped (buffer full)")
         cause = f" ({self.stop_cause})" if self.stop_cause else ""
         lines.append(f"  final state: {self.final_state}{cause}")
         if self.error:
@@ -116,50 +140,102 @@ class StopFlag:
         self.cause = signal.Signals(signum).name
 
 
+class LogRelay:
+    """The control thread's log lines go through a queue to a listener thread, never straight to a stream."""
+
+    LOGGERS = ("runtime", "bruce_hw")
+
+    def __init__(self):
+        self.queue: queue.SimpleQueue = queue.SimpleQueue()
+        targets = logging.getLogger().handlers or [logging.StreamHandler(sys.stderr)]
+        self.listener = QueueListener(self.queue, *targets, respect_handler_level=True)
+        self.saved = []
+
+    def __enter__(self) -> LogRelay:
+        handler = QueueHandler(self.queue)
+        for name in self.LOGGERS:
+            logger = logging.getLogger(name)
+            self.saved.append((logger, logger.handlers[:], logger.propagate, logger.level))
+            logger.handlers, logger.propagate = [handler], False
+            if logger.level == logging.NOTSET:
+                logger.setLevel(logging.INFO)
+        self.listener.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.listener.stop()  # drains what is queued
+        for logger, handlers, propagate, level in self.saved:
+            logger.handlers, logger.propagate, logger.level = handlers, propagate, level
+
+
+def build_controller(backend: Backend, config: RobotConfig, policy_path: Path | None):
+    """The nominal controller: the ONNX policy when one is given (or configured), else the standing controller."""
+    path = policy_path or config.models.policy
+    if path is None:
+        return StandingController(config), "standing controller"
+    policy = OnnxPolicy(path, ObservationBuilder(config).size, config.n_joints)
+    policy.warmup()
+    return PolicyController(config, policy, GroundTruthEstimator(backend)), f"policy {path}"
+
+
+def build_pinn(config: RobotConfig, transfer: str, pinn_path: Path | None) -> OnnxPinn | None:
+    if transfer not in TRANSFERS:
+        raise ValueError(f"unknown transfer {transfer!r} (expected one of {', '.join(TRANSFERS)})")
+    if transfer == "direct":
+        return None
+    path = pinn_path or config.models.pinn
+    if path is None:
+        raise ModelError(f"--transfer pinn needs a PINN model: pass --pinn PATH or set pinn.model in {config.path}")
+    pinn = OnnxPinn(path, config.n_joints)
+    pinn.warmup()
+    return pinn
+
+
 def run_session(backend: Backend, config: RobotConfig, *, duration: float | None, realtime: bool,
-                stats_path: Path | None = None) -> RunSummary:
-    summary = RunSummary(backend=backend.name, realtime=realtime)
+                stats_path: Path | None = None, transfer: str = "direct", policy: Path | None = None,
+                pinn: Path | None = None, rerun=None, controller=None) -> RunSummary:
+    """Run one session. `rerun` is a `runtime.telemetry.RerunSink` (None: no telemetry); `controller`
+    replaces the configured nominal controller (anything with reset(q) and __call__(state) -> a)."""
+    summary = RunSummary(backend=backend.name, realtime=realtime, transfer=transfer)
     stop = StopFlag()
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    relay = LogRelay().__enter__()
     wall_start = time.perf_counter()
+    grant: RealtimeGrant | None = None
+    telemetry = None
     try:
         backend.configure()
-        state = backend.read()
-        truth = backend.ground_truth()
-        if truth is not None:
+        robot = backend.read()
+        if backend.ground_truth() is not None:
             summary.truth = GroundTruthLog(nominal_base_height=backend.nominal_base_height)
-        controller = StandingController(config)
-        controller.reset(state.joints.q)
-        backend.activate()
-        until = "until Ctrl-C" if duration is None else f"for {duration:g} s"
-        print(f"bruce-run: {backend.name} backend active, standing {until}"
-              f"{' (paced to the wall clock)' if realtime else ''}", flush=True)
+        pinn_runner = build_pinn(config, transfer, pinn)
+        if controller is None:
+            controller, controller_name = build_controller(backend, config, policy)
+        else:
+            controller_name = type(controller).__name__
+        if rerun is not None:
+            from runtime.telemetry import make_telemetry  # rerun-sdk loads only when telemetry is on
 
-        n_ticks = None if duration is None else round(duration * config.loop_hz)
-        decimation = config.policy_decimation
-        gains = config.eq8
-        pacer = Pacer(config.dt)
-        pacer.start()
-        tick = 0
-        a = state.joints.q
-        while stop.cause is None and (n_ticks is None or tick < n_ticks):
-            if realtime:
-                pacer.wait()
-            state = backend.read()
-            if tick % decimation == 0:
-                a = controller(state)
-                if summary.truth is not None:
-                    summary.truth.update(backend.ground_truth())
-            backend.write(JointCommand(tau_ff=eq8_torque(a, state.joints.q, state.joints.qd, gains)))
-            tick += 1
-            summary.ticks = tick
-        summary.late_ticks, summary.skipped_ticks = pacer.late_ticks, pacer.skipped_ticks
-        summary.stop_cause = stop.cause or "duration reached"
-        if summary.truth is not None:
-            summary.truth.update(backend.ground_truth())
+            telemetry = make_telemetry(config, rerun, model=getattr(backend, "model", None))
+        if telemetry is not None:
+            telemetry.start()  # its threads start before the loop thread asks for real-time scheduling
+        if realtime:
+            grant = summary.realtime_grant = request_realtime()
+        backend.activate()
+        controller.reset(robot.joints.q)
+        if pinn_runner is not None:
+            pinn_runner.reset()
+        until = "until Ctrl-C" if duration is None else f"for {duration:g} s"
+        print(f"bruce-run: {backend.name} backend active, {controller_name}, transfer {transfer}, {until}"
+              f"{' (paced to the wall clock)' if realtime else ''}", flush=True)
+        if grant is not None:
+            print(f"bruce-run: {grant.text()}", flush=True)
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        _loop(backend, config, controller, pinn_runner, telemetry, summary, stop, duration, realtime)
         summary.final_state = backend.state.value
-        if stop.cause is not None:
-            backend.fault(stop.cause)
+        if backend.state is LifecycleState.FAULT:
             summary.final_state = f"{backend.state.value}: damping"
     except BaseException as exc:
         summary.error = f"{type(exc).__name__}: {exc}"
@@ -170,14 +246,148 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
             else backend.state.value
         raise
     finally:
+        gc.enable()
+        gc.unfreeze()
         summary.wall_time = time.perf_counter() - wall_start
         try:
+            if grant is not None:
+                grant.release()
+            if telemetry is not None:
+                telemetry.close()
+                summary.telemetry_dropped = telemetry.dropped
             backend.shutdown()
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
+            relay.__exit__(None, None, None)
             print(summary.text(), file=sys.stderr if summary.error else sys.stdout, flush=True)
             if stats_path is not None:
                 stats_path.parent.mkdir(parents=True, exist_ok=True)
                 stats_path.write_text(json.dumps(summary.to_json(), indent=2) + "\n")
     return summary
+
+
+def _loop(backend: Backend, config: RobotConfig, controller, pinn, telemetry, summary: RunSummary,
+          stop: StopFlag, duration: float | None, realtime: bool) -> None:
+    stats = summary.loop
+    sections = stats.sections
+    h_read, h_policy, h_pinn, h_mix = sections["read"], sections["policy"], sections["pinn"], sections["mixing"]
+    h_safety, h_write, h_tel = sections["safety"], sections["write"], sections["telemetry"]
+    safety = SafetyStage(config)
+    n_ticks = None if duration is None else round(duration * config.loop_hz)
+    decimation = config.policy_decimation
+    eq8, eq9 = config.eq8, config.eq9
+    truth = summary.truth
+    poses = telemetry is not None and hasattr(backend, "body_poses")
+    pose_every = getattr(telemetry, "pose_decimation", 20)
+    events_sent = 0
+    clock0 = backend.clock()
+    perf = time.perf_counter_ns
+    pacer = Pacer(config.dt)
+    late_ns = pacer.late_ns
+    pacer.start()
+    tick, previous_start, late = 0, 0, False
+    a = q_hat = qd_hat = None
+    while stop.cause is None and (n_ticks is None or tick < n_ticks):
+        if realtime:
+            behind = pacer.wait()
+            late = behind > late_ns
+            if late:
+                stats.overrun(behind)
+        t0 = perf()
+        robot = backend.read()
+        t1 = perf()
+        safety.check(robot, backend.clock(), late)
+        if safety.tripped:
+            break
+        q, qd = robot.joints.q, robot.joints.qd
+        if tick % decimation == 0:
+            try:
+                a = controller(robot)
+            except ModelError as exc:
+                safety.trip(str(exc))
+                break
+            if truth is not None:
+                truth.update(backend.ground_truth())
+        t2 = perf()
+        tau_star = eq8_torque(a, q, qd, eq8)
+        t3 = perf()
+        if pinn is not None:
+            try:
+                q_hat, qd_hat = pinn.step(q, qd, tau_star)
+            except ModelError as exc:
+                safety.trip(str(exc))
+                break
+        t4 = perf()
+        tau = tau_star if pinn is None else eq9_torque(tau_star, q_hat, qd_hat, q, qd, eq9)
+        t5 = perf()
+        tau = safety.filter(tau, robot)
+        if safety.tripped:
+            break
+        t6 = perf()
+        backend.write(JointCommand(tau_ff=tau))
+        t7 = perf()
+        if telemetry is not None:
+            now = backend.clock() - clock0
+            telemetry.append(tick, now, q, qd, q_hat, qd_hat, a, tau_star, tau, (t0 - previous_start) / 1e3,
+                             (t7 - t0) / 1e3, int(safety.state))
+            if poses and tick % pose_every == 0:
+                telemetry.append_pose(tick, now, *backend.body_poses())
+            if len(safety.transitions) > events_sent:
+                for _, text in safety.transitions[events_sent:]:
+                    telemetry.event(tick, now, text, "info")
+                events_sent = len(safety.transitions)
+        t8 = perf()
+        h_read.add(t1 - t0)
+        h_policy.add(t2 - t1)
+        h_pinn.add(t4 - t3)
+        h_mix.add(t3 - t2 + t5 - t4)
+        h_safety.add(t6 - t5)
+        h_write.add(t7 - t6)
+        h_tel.add(t8 - t7)
+        stats.work.add(t8 - t0)
+        if tick:
+            stats.period.add(t0 - previous_start)
+        previous_start = t0
+        tick += 1
+        summary.ticks = stats.ticks = tick
+    stats.late_ticks, stats.skipped_ticks = pacer.late_ticks, pacer.skipped_ticks
+
+    if stop.cause is not None:
+        safety.trip(f"{stop.cause} received")
+    if not safety.tripped:
+        summary.stop_cause = "duration reached"
+        if truth is not None:
+            truth.update(backend.ground_truth())
+        return
+    summary.stop_cause = stop.cause or safety.cause
+    if truth is not None:
+        truth.update(backend.ground_truth())  # the truth log covers the controlled part of the run
+    backend.fault(summary.stop_cause)
+    _hold_damping(backend, config, safety, telemetry, tick, clock0, realtime)
+
+
+def _hold_damping(backend: Backend, config: RobotConfig, safety: SafetyStage, telemetry, tick: int,
+                  clock0: float, realtime: bool) -> None:
+    """Keep reading while the backend damps, so the robot settles under observation (and it is logged)."""
+    if telemetry is not None:
+        telemetry.event(tick, backend.clock() - clock0, f"safety: damping: {safety.cause}", "warn")
+    pacer = Pacer(config.dt)
+    pacer.start()
+    resting = 0
+    for hold_tick in range(round(config.safety.damping_hold_s * config.loop_hz)):
+        if realtime:
+            pacer.wait()
+        try:
+            robot = backend.read()
+        except BackendError:
+            return  # the backend is gone; its own fault handling is all that is left
+        tau = safety.filter(np.zeros(config.n_joints), robot)  # in DAMPING: the damping torque -kd qd
+        if telemetry is not None:
+            q, qd = robot.joints.q, robot.joints.qd
+            telemetry.append(tick + hold_tick, backend.clock() - clock0, q, qd, None, None, q, tau, tau, 0.0, 0.0,
+                             int(SafetyState.DAMPING))
+        at_rest = np.max(np.abs(robot.joints.qd)) < AT_REST_QD and tilt_angle(robot.imu) < FALL_TILT_RAD
+        resting = resting + 1 if at_rest else 0
+        if resting >= AT_REST_TICKS:
+            return

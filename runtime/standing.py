@@ -13,11 +13,14 @@ It outputs joint targets a_t at the policy rate, like the paper's policy, and le
 
 from __future__ import annotations
 
+import math
+
 import mujoco
 import numpy as np
 
 from bruce_hw.config import RobotConfig
 from bruce_hw.types import ImuSample, RobotState
+from runtime.estimation import world_up_in_body
 
 COM_POSITION_GAIN = 2.0     # K_x, in units of the toppling stiffness m g (must exceed 1)
 COM_VELOCITY_GAIN = 0.3     # K_v, s
@@ -30,21 +33,15 @@ SUPPORT_SITES = ("r_toe", "r_heel", "l_toe", "l_heel")
 
 
 def tilt_quaternion(imu: ImuSample) -> np.ndarray:
-    """The base's roll and pitch as a quaternion (w, x, y, z), heading removed; from the IMU orientation when
-    it has one, else from the gravity direction in the accelerometer."""
-    if imu.orientation is not None:
-        w, x, y, z = imu.orientation
-        up = np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])  # world z in body
-    else:
-        up = imu.accel / np.linalg.norm(imu.accel)
-    # shortest rotation taking the body's z axis to the world's: the tilt without heading
-    axis = np.cross(up, [0.0, 0.0, 1.0])
-    s, c = np.linalg.norm(axis), up[2]
+    """The base's roll and pitch as a quaternion (w, x, y, z), heading removed: the shortest rotation taking the
+    body's z axis onto the world's. Scalar math: numpy's cross/norm on 3-vectors cost ~15 µs per call."""
+    ux, uy, uz = (float(v) for v in world_up_in_body(imu))
+    s = math.hypot(ux, uy)  # |up x e_z|; the rotation axis is (uy, -ux, 0) / s
     if s < 1e-12:
         return np.array([1.0, 0.0, 0.0, 0.0])
-    angle = np.arctan2(s, c)
-    axis = axis / s
-    return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
+    half = 0.5 * math.atan2(s, uz)
+    k = math.sin(half) / s
+    return np.array([math.cos(half), k * uy, -k * ux, 0.0])
 
 
 class StandingController:

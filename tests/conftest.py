@@ -27,3 +27,73 @@ def write_config(tmp_path):
         return path
 
     return write
+
+
+# -- ONNX models with the runtime's signatures and random weights, made on the fly ---------------------------
+def _onnx_graph(path: Path, inputs: dict, outputs: dict, nodes: list, initializers: list = ()) -> Path:
+    """A hand-built ONNX graph (float32 tensors, opset 17), for signatures torch would not export."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    graph = helper.make_graph(
+        nodes, path.stem,
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, list(s)) for n, s in inputs.items()],
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, list(s)) for n, s in outputs.items()],
+        list(initializers))
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 9
+    onnx.checker.check_model(model)
+    onnx.save(model, path)
+    return path
+
+
+@pytest.fixture(scope="session")
+def onnx_graph():
+    return _onnx_graph
+
+
+@pytest.fixture(scope="session")
+def stateful_pinn_onnx(tmp_path_factory):
+    """The paper-sized PINN, random weights including the head, so its output depends on the LSTM state."""
+    import torch
+
+    from training.export import export_pinn_onnx
+    from training.pinn import make_random_pinn
+
+    model = make_random_pinn(seed=1)
+    with torch.no_grad():
+        torch.manual_seed(2)
+        model.head.weight.normal_(std=1e-3)  # small: q' stays near q, the closed loop stays tame
+        model.head.bias.normal_(std=1e-4)
+    return export_pinn_onnx(model, tmp_path_factory.mktemp("models") / "pinn.onnx")
+
+
+@pytest.fixture(scope="session")
+def nan_pinn_onnx(tmp_path_factory):
+    """The PINN signature with a call counter as its state: q_next = q + 0 * sqrt(49.5 - h) turns NaN on the
+    51st call after a reset; otherwise q_next = q, qd_next = qd."""
+    from onnx import TensorProto, helper
+
+    joint, state = (1, 10), (1, 1, 1)
+    constants = [helper.make_tensor("one", TensorProto.FLOAT, [], [1.0]),
+                 helper.make_tensor("limit", TensorProto.FLOAT, [], [49.5]),
+                 helper.make_tensor("zero", TensorProto.FLOAT, [], [0.0]),
+                 helper.make_tensor("shape_1x1", TensorProto.INT64, [2], [1, 1])]
+    nodes = [helper.make_node("Add", ["h", "one"], ["h_next"]), helper.make_node("Identity", ["c"], ["c_next"]),
+             helper.make_node("Sub", ["limit", "h"], ["left"]), helper.make_node("Sqrt", ["left"], ["root"]),
+             helper.make_node("Reshape", ["root", "shape_1x1"], ["root_1x1"]),
+             helper.make_node("Mul", ["root_1x1", "zero"], ["poison"]),
+             helper.make_node("Add", ["q", "poison"], ["q_next"]), helper.make_node("Identity", ["qd"], ["qd_next"])]
+    return _onnx_graph(tmp_path_factory.mktemp("models") / "nan_pinn.onnx",
+                       {"q": joint, "qd": joint, "tau": joint, "h": state, "c": state},
+                       {"q_next": joint, "qd_next": joint, "h_next": state, "c_next": state}, nodes, constants)
+
+
+@pytest.fixture(scope="session")
+def random_policy_onnx(tmp_path_factory):
+    from runtime.policy import ObservationBuilder
+    from training.export import export_mlp_policy_onnx, make_random_policy
+
+    obs_dim = ObservationBuilder(load_config()).size
+    return export_mlp_policy_onnx(make_random_policy(obs_dim, 10, seed=3),
+                                  tmp_path_factory.mktemp("models") / "policy.onnx", obs_dim, 10)

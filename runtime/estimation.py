@@ -1,0 +1,71 @@
+"""Base attitude from the IMU, and the base state the walking policy observes (paper Table I).
+
+`BaseEstimate` is what the policy needs beyond the joints: the base's linear and angular velocity in its own
+frame and its Euler angles. `GroundTruthEstimator` reads them from the simulator's truth; it exists only for
+the mock, and a backend without ground truth is refused with a clear error.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from bruce_hw.backend import Backend, BackendError
+from bruce_hw.types import ImuSample
+
+
+def world_up_in_body(imu: ImuSample) -> np.ndarray:
+    """The world's z axis in the IMU frame (unit): from the orientation when the IMU has one, else from the
+    accelerometer's specific force, which points up at rest."""
+    if imu.orientation is not None:
+        w, x, y, z = imu.orientation
+        return np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
+    norm = float(np.linalg.norm(imu.accel))
+    return imu.accel / norm if norm > 0 else np.array([0.0, 0.0, 1.0])
+
+
+def tilt_angle(imu: ImuSample) -> float:
+    """Angle between the base's z axis and the world's (rad)."""
+    return math.acos(max(-1.0, min(1.0, float(world_up_in_body(imu)[2]))))
+
+
+def euler_of(quat: np.ndarray) -> np.ndarray:
+    """(roll, pitch, yaw), ZYX convention, of a (w, x, y, z) quaternion."""
+    w, x, y, z = quat
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return np.array([roll, pitch, yaw])
+
+
+def rotate_to_body(quat: np.ndarray, v_world: np.ndarray) -> np.ndarray:
+    """R(quat)^T v: a world vector in the body frame of a (w, x, y, z) body -> world quaternion."""
+    w, x, y, z = quat
+    r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                  [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                  [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return r.T @ v_world
+
+
+@dataclass(slots=True)
+class BaseEstimate:
+    linvel: np.ndarray  # m/s, base frame
+    angvel: np.ndarray  # rad/s, base frame
+    euler: np.ndarray   # rad, (roll, pitch, yaw)
+
+
+class GroundTruthEstimator:
+    """The simulator's truth as the estimate (mock only: a robot has no ground truth)."""
+
+    def __init__(self, backend: Backend):
+        if backend.ground_truth() is None:
+            raise BackendError(f"{backend.name} backend: no ground truth, and the policy needs the base velocity; "
+                             "only the mock can run an ONNX policy until an IMU + kinematics estimator exists")
+        self.backend = backend
+
+    def __call__(self) -> BaseEstimate:
+        truth = self.backend.ground_truth()
+        return BaseEstimate(linvel=rotate_to_body(truth.base_quat, truth.base_linvel),
+                            angvel=truth.base_angvel.copy(), euler=euler_of(truth.base_quat))

@@ -1,0 +1,87 @@
+"""Loop statistics: per-section and whole-tick timing histograms, lateness, the worst overruns.
+
+Histograms have 1 µs bins up to 20 ms plus an overflow bin and keep the exact maximum, so recording is an
+integer division and a list increment on the control thread (no allocation, no sorting), and percentiles
+come out at 1 µs resolution at the end of the run, however long it was.
+"""
+
+from __future__ import annotations
+
+import heapq
+
+SECTIONS = ("read", "policy", "pinn", "mixing", "safety", "write", "telemetry")
+HISTOGRAM_BINS_US = 20_000
+WORST_OVERRUNS_KEPT = 10
+
+
+class Histogram:
+    __slots__ = ("counts", "n", "max_ns")
+
+    def __init__(self):
+        self.counts = [0] * (HISTOGRAM_BINS_US + 1)
+        self.n = 0
+        self.max_ns = 0
+
+    def add(self, ns: int) -> None:
+        us = ns // 1000
+        self.counts[us if us < HISTOGRAM_BINS_US else HISTOGRAM_BINS_US] += 1
+        self.n += 1
+        if ns > self.max_ns:
+            self.max_ns = ns
+
+    def percentile(self, p: float) -> float | None:
+        """Upper edge (µs) of the bin holding the p-th percentile; the exact max for the overflow bin."""
+        if self.n == 0:
+            return None
+        rank = p / 100.0 * self.n
+        seen = 0
+        for us, count in enumerate(self.counts):
+            seen += count
+            if seen >= rank and count:
+                return float(us + 1) if us < HISTOGRAM_BINS_US else self.max_ns / 1000.0
+        return self.max_ns / 1000.0
+
+
+class LoopStats:
+    def __init__(self, sections: tuple[str, ...] = SECTIONS):
+        self.work = Histogram()
+        self.period = Histogram()
+        self.sections = {name: Histogram() for name in sections}
+        self.ticks = 0
+        self.late_ticks = 0
+        self.skipped_ticks = 0
+        self._worst: list[int] = []  # min-heap of the largest lateness values (ns)
+
+    def overrun(self, behind_ns: int) -> None:
+        """A late tick, `behind_ns` past its deadline."""
+        if len(self._worst) < WORST_OVERRUNS_KEPT:
+            heapq.heappush(self._worst, behind_ns)
+        elif behind_ns > self._worst[0]:
+            heapq.heapreplace(self._worst, behind_ns)
+
+    def to_json(self) -> dict:
+        return {
+            "ticks": self.ticks,
+            "late_ticks": self.late_ticks,
+            "late_share": self.late_ticks / self.ticks if self.ticks else 0.0,
+            "skipped_ticks": self.skipped_ticks,
+            "work_us": {"p50": self.work.percentile(50), "p99": self.work.percentile(99),
+                        "max": self.work.max_ns / 1000.0 if self.work.n else None},
+            "period_us": {"p50": self.period.percentile(50), "p99": self.period.percentile(99),
+                          "max": self.period.max_ns / 1000.0 if self.period.n else None},
+            "sections_us": {name: {"p50": h.percentile(50), "p99": h.percentile(99)}
+                            for name, h in self.sections.items() if h.n},
+            "worst_overruns_us": [ns / 1000.0 for ns in sorted(self._worst, reverse=True)],
+        }
+
+    def text(self) -> str:
+        j = self.to_json()
+        if not self.ticks:
+            return "  loop: no ticks"
+        lines = [f"  loop: work p50 {j['work_us']['p50']:.0f} / p99 {j['work_us']['p99']:.0f} / max "
+                 f"{j['work_us']['max']:.0f} µs, period p50 {j['period_us']['p50']:.0f} / p99 "
+                 f"{j['period_us']['p99']:.0f} / max {j['period_us']['max']:.0f} µs, late {self.late_ticks} "
+                 f"({100 * j['late_share']:.3f} %), skipped {self.skipped_ticks}"]
+        parts = [f"{name} {v['p50']:.0f}/{v['p99']:.0f}" for name, v in j["sections_us"].items()]
+        lines.append("  sections p50/p99 µs: " + ", ".join(parts))
+        return "\n".join(lines)

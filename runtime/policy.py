@@ -1,0 +1,84 @@
+"""The walking policy as the nominal controller: observation (paper Table I) -> ONNX -> a_t at 100 Hz.
+
+The observation is built here and only here, so training and the runtime cannot disagree on it. Layout, in
+order (SI units, joint arrays in the config's joint order, no normalisation: a policy folds its own into
+its graph):
+
+| slice            | dims | what                                                   |
+|------------------|------|--------------------------------------------------------|
+| clock            | 2    | sin(2 pi t / C_T), cos(2 pi t / C_T), C_T = policy.gait_period_s |
+| command          | 3    | commanded vx, vy (m/s, heading frame) and yaw rate (rad/s)       |
+| q                | n    | joint positions (rad)                                  |
+| qd               | n    | joint velocities (rad/s)                               |
+| base_linvel      | 3    | base linear velocity, base frame (m/s)                 |
+| base_angvel      | 3    | base angular velocity, base frame (rad/s)              |
+| euler            | 3    | base roll, pitch, yaw (rad)                            |
+| last_action      | n    | a_{t-1} (rad)                                          |
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from bruce_hw.config import RobotConfig
+from bruce_hw.types import RobotState
+from runtime.estimation import BaseEstimate
+from runtime.inference import OnnxPolicy
+
+
+def observation_layout(n_joints: int) -> tuple[tuple[str, int], ...]:
+    return (("clock", 2), ("command", 3), ("q", n_joints), ("qd", n_joints), ("base_linvel", 3),
+            ("base_angvel", 3), ("euler", 3), ("last_action", n_joints))
+
+
+class ObservationBuilder:
+    def __init__(self, config: RobotConfig):
+        self.gait_period_s = config.models.gait_period_s
+        self.slices: dict[str, slice] = {}
+        start = 0
+        for name, width in observation_layout(config.n_joints):
+            self.slices[name] = slice(start, start + width)
+            start += width
+        self.size = start
+
+    def build(self, t: float, command: np.ndarray, state: RobotState, base: BaseEstimate,
+              last_action: np.ndarray) -> np.ndarray:
+        phase = 2.0 * math.pi * t / self.gait_period_s
+        s = self.slices
+        obs = np.empty(self.size)
+        obs[s["clock"]] = (math.sin(phase), math.cos(phase))
+        obs[s["command"]] = command
+        obs[s["q"]] = state.joints.q
+        obs[s["qd"]] = state.joints.qd
+        obs[s["base_linvel"]] = base.linvel
+        obs[s["base_angvel"]] = base.angvel
+        obs[s["euler"]] = base.euler
+        obs[s["last_action"]] = last_action
+        return obs
+
+
+class PolicyController:
+    """Same interface as the standing controller: reset(q) at start, then a_t = controller(state) at 100 Hz."""
+
+    def __init__(self, config: RobotConfig, policy: OnnxPolicy, estimator: Callable[[], BaseEstimate],
+                 command: np.ndarray | None = None):
+        self.builder = ObservationBuilder(config)
+        self.policy = policy
+        self.estimator = estimator
+        self.dt = 1.0 / config.policy_hz
+        self.command = np.zeros(3) if command is None else np.asarray(command, float)
+        self.reset(config.standing_pose)
+
+    def reset(self, q_measured: np.ndarray) -> None:
+        self.step = 0
+        self.last_action = np.array(q_measured, dtype=float)
+
+    def __call__(self, state: RobotState) -> np.ndarray:
+        obs = self.builder.build(self.step * self.dt, self.command, state, self.estimator(), self.last_action)
+        a = self.policy(obs)
+        self.last_action = a
+        self.step += 1
+        return a

@@ -1,0 +1,155 @@
+import math
+
+import numpy as np
+import pytest
+
+from bruce_hw.types import FootContacts, ImuSample, JointState, RobotState
+from runtime.safety import SafetyStage, SafetyState
+
+
+def robot(config, q=None, qd=None, stamp=0.0, orientation=(1.0, 0.0, 0.0, 0.0), estop=False, imu_stamp=None):
+    n = config.n_joints
+    q = config.standing_pose.copy() if q is None else q
+    qd = np.zeros(n) if qd is None else qd
+    return RobotState(
+        joints=JointState(q=q, qd=qd, tau=np.zeros(n), temperature=np.full(n, 30.0), stamp=stamp),
+        imu=ImuSample(gyro=np.zeros(3), accel=np.array([0.0, 0.0, 9.81]),
+                      orientation=None if orientation is None else np.array(orientation),
+                      stamp=stamp if imu_stamp is None else imu_stamp),
+        contacts=FootContacts(contact=np.ones(4, bool), stamp=stamp), estop=estop)
+
+
+def running_stage(config) -> SafetyStage:
+    stage = SafetyStage(config)
+    state = robot(config)
+    for _ in range(stage.ramp_ticks):
+        stage.filter(np.zeros(config.n_joints), state)
+    assert stage.state is SafetyState.RUNNING
+    return stage
+
+
+def roll_quaternion(deg):
+    half = math.radians(deg) / 2
+    return (math.cos(half), math.sin(half), 0.0, 0.0)
+
+
+def test_output_is_within_joint_and_actuator_limits(config):
+    stage = running_stage(config)
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        tau = stage.filter(rng.normal(0, 40, config.n_joints), robot(config))
+        assert np.all(np.abs(tau) <= config.tau_limit + 1e-9)
+        assert np.all(np.abs(config.coupling.actuator_torques(tau)) <= config.actuator_torque_limit + 1e-9)
+
+
+def test_rate_of_change_is_limited(config):
+    stage = running_stage(config)
+    step = config.safety.max_torque_rate * config.dt
+    first = stage.filter(np.full(config.n_joints, 8.0), robot(config))
+    np.testing.assert_allclose(first, step)  # from zero, one tick moves at most max_torque_rate * dt
+    second = stage.filter(np.full(config.n_joints, 8.0), robot(config))
+    np.testing.assert_allclose(second, 2 * step)
+
+
+def test_no_torque_pushes_further_past_a_position_soft_limit(config):
+    stage = running_stage(config)
+    knee = config.joints.index("r_knee")
+    q = config.standing_pose.copy()
+    q[knee] = config.q_upper[knee] - config.safety.position_margin / 2  # inside the margin, near the top stop
+    tau = np.zeros(config.n_joints)
+    tau[knee] = 1.0
+    assert stage.filter(tau, robot(config, q=q))[knee] == 0.0  # further up: removed
+    tau[knee] = -1.0
+    assert stage.filter(tau, robot(config, q=q))[knee] < 0.0  # back towards the range: kept
+
+
+def test_no_torque_accelerates_beyond_the_velocity_limit(config):
+    stage = running_stage(config)
+    qd = np.zeros(config.n_joints)
+    qd[0] = config.qd_limit[0] * 1.1
+    out = stage.filter(np.array([1.0] + [0.0] * 9), robot(config, qd=qd))
+    assert out[0] == 0.0
+    out = stage.filter(np.array([-1.0] + [0.0] * 9), robot(config, qd=qd))
+    assert out[0] < 0.0  # braking is allowed
+
+
+def test_soft_start_ramps_torques_in(config):
+    stage = SafetyStage(config)
+    small = np.full(config.n_joints, 0.5)
+    outputs = [stage.filter(small, robot(config))[0] for _ in range(stage.ramp_ticks + 5)]
+    assert outputs[0] == pytest.approx(0.5 / stage.ramp_ticks)
+    assert np.all(np.diff(outputs[: stage.ramp_ticks]) > 0)
+    assert outputs[-1] == pytest.approx(0.5)
+    assert stage.state is SafetyState.RUNNING
+
+
+def test_non_finite_command_trips_to_damping_torque(config):
+    stage = running_stage(config)
+    tau = np.zeros(config.n_joints)
+    tau[3] = np.nan
+    qd = np.linspace(-1, 1, config.n_joints)
+    out = stage.filter(tau, robot(config, qd=qd))
+    assert stage.tripped and "r_knee" in stage.cause
+    np.testing.assert_allclose(out, -config.safety.damping_kd * qd)
+
+
+def test_tilt_must_persist_for_the_configured_ticks(config):
+    stage = running_stage(config)
+    ticks = config.safety.tilt_ticks
+    tilted = robot(config, orientation=roll_quaternion(config.safety.tilt_limit_deg + 5))
+    for _ in range(ticks - 1):
+        stage.check(tilted, now=0.0)
+    stage.check(robot(config), now=0.0)  # one upright reading restarts the count
+    for _ in range(ticks - 1):
+        stage.check(tilted, now=0.0)
+    assert not stage.tripped
+    stage.check(tilted, now=0.0)
+    assert stage.tripped and "tilt" in stage.cause
+
+
+def test_tilt_from_the_accelerometer_when_there_is_no_orientation(config):
+    stage = running_stage(config)
+    state = robot(config, orientation=None)
+    state.imu.accel = np.array([0.0, 9.81, 0.0])  # lying on its side
+    for _ in range(config.safety.tilt_ticks):
+        stage.check(state, now=0.0)
+    assert stage.tripped and "tilt 90 deg" in stage.cause
+
+
+@pytest.mark.parametrize("which", ["joint", "IMU"])
+def test_stale_sensor_data_trips(config, which):
+    stage = running_stage(config)
+    age = config.safety.max_sensor_age_s
+    old = robot(config, stamp=1.0, imu_stamp=1.0 + age) if which == "joint" else \
+        robot(config, stamp=1.0 + age, imu_stamp=1.0)
+    stage.check(old, now=1.0 + age)  # exactly at the limit: fine
+    assert not stage.tripped
+    stage.check(old, now=1.0 + 1.5 * age)
+    assert stage.tripped and f"stale {which} data" in stage.cause
+
+
+def test_estop_and_overrun_streak_trip(config):
+    stage = running_stage(config)
+    stage.check(robot(config, estop=True), now=0.0)
+    assert stage.tripped and "e-stop" in stage.cause
+
+    stage = running_stage(config)
+    for _ in range(config.safety.overrun_streak - 1):
+        stage.check(robot(config), now=0.0, late=True)
+    stage.check(robot(config), now=0.0, late=False)  # an on-time tick ends the streak
+    for _ in range(config.safety.overrun_streak - 1):
+        stage.check(robot(config), now=0.0, late=True)
+    assert not stage.tripped
+    stage.check(robot(config), now=0.0, late=True)
+    assert stage.tripped and "late ticks in a row" in stage.cause
+
+
+def test_damping_is_sticky_and_keeps_the_first_cause(config):
+    stage = running_stage(config)
+    stage.trip("first")
+    stage.trip("second")
+    stage.check(robot(config, estop=True), now=0.0)
+    out = stage.filter(np.full(config.n_joints, 5.0), robot(config, qd=np.ones(config.n_joints)))
+    assert stage.cause == "first"
+    np.testing.assert_allclose(out, -config.safety.damping_kd)
+    assert [text for _, text in stage.transitions][-1].endswith("first")

@@ -1,0 +1,257 @@
+import math
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from bruce_hw import make_backend
+from runtime.telemetry import RerunSink, Telemetry, TelemetryError, grpc_url, make_telemetry, parse_sink
+
+
+def rrd_entity_paths(path) -> set[str]:
+    """Entity paths (no leading '/') of the recording in an .rrd. Reads the footer's manifest, so a file that
+    was not closed properly (no footer) raises instead of answering."""
+    from rerun.chunk import RrdReader
+
+    return {p.lstrip("/") for p in RrdReader(path).store().schema().entity_paths()}
+
+
+def rrd_rows(path, entity: str, component: str) -> dict[int, list]:
+    """tick -> the component's values in that row, for the temporal chunks of `entity` in an .rrd."""
+    from rerun.chunk import RrdReader
+
+    rows = {}
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path == "/" + entity and not chunk.is_static:
+            batch = chunk.to_record_batch()
+            for tick, value in zip(batch.column("tick").to_pylist(), batch.column(component).to_pylist(),
+                                   strict=True):
+                rows[tick] = value
+    return rows
+
+
+def rrd_timelines(path) -> set[str]:
+    from rerun.chunk import RrdReader
+
+    return {name for chunk in RrdReader(path).stream() for name in chunk.timeline_names}
+
+
+@pytest.fixture(scope="module")
+def model(config):
+    mock = make_backend("mock", config)
+    mock.configure()
+    return mock
+
+
+def joint_row(config, tick: int, with_pinn: bool):
+    """Distinct, checkable values: joint j of quantity k at tick t is t + j / 100 + k / 1000."""
+    n = config.n_joints
+    values = [tick + np.arange(n) / 100 + k / 1000 for k in range(7)]
+    q, qd, q_hat, qd_hat, a, tau_star, tau = values
+    return (q, qd, q_hat if with_pinn else None, qd_hat if with_pinn else None, a, tau_star, tau,
+            1000.0 + tick, 50.0, tick % 3)
+
+
+@pytest.mark.parametrize("text, kind, target", [
+    ("spawn", "spawn", None), ("connect", "connect", None), ("connect=robot:9876", "connect", "robot:9876"),
+    ("connect=rerun+http://10.0.0.2:9876/proxy", "connect", "rerun+http://10.0.0.2:9876/proxy"),
+    ("serve", "serve", None), ("serve=9877", "serve", "9877"), ("save=runs/a b.rrd", "save", "runs/a b.rrd"),
+    ("off", "off", None),
+])
+def test_parse_sink_accepts_each_form(text, kind, target):
+    assert parse_sink(text) == RerunSink(kind, target)
+
+
+@pytest.mark.parametrize("text", ["", "spwan", "save", "save=", "off=1", "spawn=now", "serve=http", "serve=70000",
+                                  "connect=", "file=x.rrd"])
+def test_parse_sink_rejects_junk_naming_the_value(text):
+    with pytest.raises(ValueError, match=f"{text!r}.*expected one of spawn, connect"):
+        parse_sink(text)
+
+
+def test_grpc_url_completes_host_port_only():
+    assert grpc_url("robot.local:9876") == "rerun+http://robot.local:9876/proxy"
+    assert grpc_url("rerun+https://h:1/proxy") == "rerun+https://h:1/proxy"
+    assert grpc_url(None) is None
+
+
+def test_make_telemetry_is_none_for_off(config, tmp_path):
+    assert make_telemetry(config, parse_sink("off")) is None
+    telemetry = make_telemetry(config, parse_sink(f"save={tmp_path / 'x.rrd'}"), capacity=16)
+    assert isinstance(telemetry, Telemetry) and telemetry.capacity == 16
+    telemetry.close()
+
+
+def test_a_full_buffer_drops_the_oldest_rows_and_counts_them(config, tmp_path):
+    path = tmp_path / "overflow.rrd"
+    # The consumer's first wake-up is a minute away, so nothing drains until close().
+    telemetry = Telemetry(config, parse_sink(f"save={path}"), capacity=8, batch_period_s=60.0)
+    telemetry.start()
+    for tick in range(20):
+        telemetry.append(tick, tick / 1000, *joint_row(config, tick, with_pinn=False))
+    assert telemetry.dropped == 12 and telemetry.sent_rows == 0
+    telemetry.close()
+    assert telemetry.dropped == 12 and telemetry.sent_rows == 8 and telemetry.error is None
+    assert sorted(rrd_rows(path, "loop/period_us", "Scalars:scalars")) == list(range(12, 20))
+
+
+def test_save_round_trip_with_the_mock_model(config, model, tmp_path):
+    path = tmp_path / "nested" / "run.rrd"  # the parent is created
+    ticks, half = 300, 150
+    with Telemetry(config, parse_sink(f"save={path}"), model=model.model, batch_period_s=0.01) as telemetry:
+        for tick in range(ticks):
+            telemetry.append(tick, tick / 1000, *joint_row(config, tick, with_pinn=tick >= half))
+            if tick % telemetry.pose_decimation == 0:
+                xpos, xquat = model.body_poses()
+                xpos[1] += [0.001 * tick, 0.0, 0.0]  # the base walks forward along x
+                telemetry.append_pose(tick, tick / 1000, xpos, xquat)
+            if tick == 200:
+                telemetry.event(tick, tick / 1000, "safety: damping: tilt", "warn")
+    assert telemetry.error is None and telemetry.dropped == 0 and telemetry.sent_rows == ticks
+
+    paths = rrd_entity_paths(path)
+    expected = {f"joints/{name}/{leaf}" for name in config.joints for leaf in ("position", "velocity", "torque")}
+    expected |= {"loop/period_us", "loop/work_us", "safety/state", "safety/events", "telemetry/dropped", "world",
+                 "world/floor", "world/base_trajectory", "world/robot/base", "world/robot/r_shank"}
+    assert expected <= paths
+    assert rrd_timelines(path) == {"tick", "time"}  # send_columns/record batches add no log_time/log_tick
+
+    knee = config.joints.index("r_knee")
+    positions = rrd_rows(path, "joints/r_knee/position", "Scalars:scalars")
+    assert sorted(positions) == list(range(ticks))
+    assert positions[7][0] == pytest.approx(7 + knee / 100) and math.isnan(positions[7][1])  # no PINN: NaN
+    assert positions[7][2] == pytest.approx(7 + knee / 100 + 4 / 1000)  # a
+    assert positions[160] == pytest.approx([160 + knee / 100 + k / 1000 for k in (0, 2, 4)])
+    assert rrd_rows(path, "joints/r_knee/torque", "Scalars:scalars")[9] == pytest.approx(
+        [9 + knee / 100 + k / 1000 for k in (5, 6)])
+    assert rrd_rows(path, "safety/state", "Scalars:scalars")[5] == [2.0]
+    assert rrd_rows(path, "safety/events", "TextLog:text") == {200: ["safety: damping: tilt"]}
+
+    xpos, xquat = model.body_poses()
+    base = rrd_rows(path, "world/robot/base", "Transform3D:translation")
+    assert sorted(base) == list(range(0, ticks, 20))
+    assert base[100][0] == pytest.approx(xpos[1] + [0.1, 0.0, 0.0], abs=1e-6)
+    w, x, y, z = xquat[2]  # rerun stores x, y, z, w
+    hip = rrd_rows(path, "world/robot/r_hip_yaw_link", "Transform3D:quaternion")
+    assert hip[0][0] == pytest.approx([x, y, z, w], abs=1e-6)
+
+    from rerun.chunk import RrdReader
+
+    assert RrdReader(path).blueprints(), "the default blueprint is saved with the recording"
+    verify = subprocess.run([sys.executable, "-m", "rerun", "rrd", "verify", str(path)], capture_output=True,
+                            text=True, timeout=60)
+    assert verify.returncode == 0, verify.stdout + verify.stderr
+
+
+def test_close_is_idempotent_and_works_without_start(config, tmp_path):
+    telemetry = Telemetry(config, parse_sink(f"save={tmp_path / 'never.rrd'}"))
+    telemetry.append(0, 0.0, *joint_row(config, 0, with_pinn=False))
+    telemetry.close()
+    telemetry.close()
+    assert telemetry.dropped == 1 and telemetry.sent_rows == 0
+    assert not (tmp_path / "never.rrd").exists()
+    with pytest.raises(TelemetryError, match="already started or closed"):
+        telemetry.start()
+
+
+def test_a_failed_start_names_the_sink_and_close_still_works(config, tmp_path):
+    (tmp_path / "file").write_text("not a directory")
+    telemetry = Telemetry(config, parse_sink(f"save={tmp_path / 'file' / 'run.rrd'}"))
+    with pytest.raises(TelemetryError, match=r"rerun sink save=.*file/run\.rrd"):
+        telemetry.start()
+    telemetry.close()
+    telemetry.close()
+
+
+def test_spawn_without_a_display_fails_clearly(config, monkeypatch):
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the display check is for Linux")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    with pytest.raises(TelemetryError, match="rerun sink spawn: no display.*serve.*save=PATH"):
+        with Telemetry(config, parse_sink("spawn")):
+            pass
+
+
+def test_serve_on_a_busy_port_fails_clearly(config):
+    with socket.socket() as busy:
+        busy.bind(("0.0.0.0", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        telemetry = Telemetry(config, parse_sink(f"serve={port}"))
+        with pytest.raises(TelemetryError, match=f"rerun sink serve={port}: cannot listen on port {port}"):
+            telemetry.start()
+        telemetry.close()
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def test_connect_reaches_a_served_recording_and_fails_fast_without_one(config, capsys):
+    port = free_port()
+    with Telemetry(config, parse_sink(f"serve={port}"), recording_name="server") as server:
+        assert server.url and str(port) in server.url
+        assert f"rerun+http://{socket.gethostname()}:{port}/proxy" in capsys.readouterr().out
+        with Telemetry(config, parse_sink(f"connect=127.0.0.1:{port}"), batch_period_s=0.01) as client:
+            for tick in range(50):
+                client.append(tick, tick / 1000, *joint_row(config, tick, with_pinn=False))
+        assert client.error is None and client.sent_rows == 50
+    with pytest.raises(TelemetryError, match=f"rerun sink connect=127.0.0.1:{port}: no viewer reachable"):
+        Telemetry(config, parse_sink(f"connect=127.0.0.1:{port}")).start()
+
+
+def test_a_failing_batch_is_recorded_and_later_batches_still_go_out(config, tmp_path, capsys):
+    path = tmp_path / "errors.rrd"
+    telemetry = Telemetry(config, parse_sink(f"save={path}"), batch_period_s=0.005)
+    telemetry.start()
+    bad = np.zeros(3)  # wrong number of joints
+    for tick in range(5):
+        telemetry.append(tick, tick / 1000, bad, bad, None, None, bad, bad, bad, 1000.0, 50.0, 0)
+    deadline = time.monotonic() + 5.0
+    while telemetry.error is None and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert isinstance(telemetry.error, ValueError) and telemetry.dropped == 5
+    for tick in range(5, 10):
+        telemetry.append(tick, tick / 1000, *joint_row(config, tick, with_pinn=True))
+    telemetry.close()
+    assert telemetry.sent_rows == 5 and telemetry.dropped == 5
+    assert sorted(rrd_rows(path, "loop/work_us", "Scalars:scalars")) == list(range(5, 10))
+    assert "count as dropped" in capsys.readouterr().err
+
+
+CHILD = """
+import sys
+import numpy as np
+from bruce_hw import load_config
+from runtime.telemetry import Telemetry, parse_sink
+
+config = load_config()
+telemetry = Telemetry(config, parse_sink(sys.argv[1]), batch_period_s=60.0)  # nothing is sent before exit
+telemetry.start()
+row = np.zeros(config.n_joints)
+for tick in range(100):
+    telemetry.append(tick, tick / 1000, row, row, None, None, row, row, row, 1000.0, 50.0, 0)
+print("appended", flush=True)
+if sys.argv[2] == "interrupt":
+    raise KeyboardInterrupt  # what an unhandled Ctrl-C does
+"""
+
+
+@pytest.mark.parametrize("how", ["return", "interrupt"])
+def test_a_process_leaving_without_close_still_writes_a_complete_file(tmp_path, how):
+    path = tmp_path / "child.rrd"
+    script = tmp_path / "child.py"
+    script.write_text(textwrap.dedent(CHILD))
+    done = subprocess.run([sys.executable, str(script), f"save={path}", how], capture_output=True, text=True,
+                          timeout=60)
+    assert "appended" in done.stdout
+    assert (done.returncode == 0) == (how == "return"), done.stderr
+    assert "loop/period_us" in rrd_entity_paths(path)  # raises if the footer is missing
+    assert sorted(rrd_rows(path, "loop/period_us", "Scalars:scalars")) == list(range(100))

@@ -1,0 +1,164 @@
+"""ONNX export of the PINN step and of the walking policy, for the torch-free 1 kHz runtime.
+
+Every export uses the legacy TorchScript exporter (`dynamo=False`, pinned: torch's default flipped to the dynamo
+exporter, and for the PINN the legacy graph is smaller and faster; research anchors §8), a fixed batch of 1 and
+no dynamic axes. The file is then loaded back, checked with `onnx.checker`, its input/output names, shapes and
+dtypes are verified, and a sidecar `<file>.json` records the versions, opset and the file's SHA-256, so the
+runtime can tell which model it is running.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import warnings
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import onnx
+import onnxruntime
+import torch
+from torch import nn
+
+from training.pinn import PinnStep, make_random_pinn
+
+__all__ = ["ExportError", "export_mlp_policy_onnx", "export_pinn_onnx", "make_random_pinn", "make_random_policy",
+           "sidecar_path"]
+
+_FLOAT = onnx.TensorProto.FLOAT
+
+
+class ExportError(RuntimeError):
+    """An exported graph that does not look like what the runtime expects."""
+
+
+def sidecar_path(path: str | Path) -> Path:
+    """Where the JSON sidecar of an exported model lives: `<path>.json`."""
+    return Path(f"{path}.json")
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _check_io(values: Sequence[onnx.ValueInfoProto], names: Sequence[str], shapes: Sequence[tuple[int, ...]],
+              what: str, path: Path) -> None:
+    got = [v.name for v in values]
+    if got != list(names):
+        raise ExportError(f"{path}: graph {what}s are {got}, expected {list(names)}")
+    for value, shape in zip(values, shapes, strict=True):
+        tensor = value.type.tensor_type
+        dims = tuple(d.dim_value if d.HasField("dim_value") else d.dim_param for d in tensor.shape.dim)
+        if tensor.elem_type != _FLOAT or dims != tuple(shape):
+            raise ExportError(f"{path}: {what} {value.name!r} is {onnx.TensorProto.DataType.Name(tensor.elem_type)}"
+                              f"{list(dims)}, expected FLOAT{list(shape)}")
+
+
+def _export_checked(model: nn.Module, example_inputs: tuple[torch.Tensor, ...], path: str | Path, *,
+                    input_names: Sequence[str], output_names: Sequence[str], opset: int,
+                    op_counts: Mapping[str, int], metadata: Mapping[str, object]) -> Path:
+    """Export `model` at the example inputs' (fixed) shapes, verify the graph, write the sidecar.
+
+    `op_counts` pins how many nodes of an op type the graph must have (e.g. {"LSTM": 3}); `metadata` goes into
+    the sidecar next to the versions, opset, I/O shapes and SHA-256.
+    """
+    path = Path(path)
+    for name, tensor in zip(input_names, example_inputs, strict=True):
+        if tensor.dtype != torch.float32:
+            raise ExportError(f"example input {name!r} is {tensor.dtype}, expected torch.float32")
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+    was_training = model.training
+    model.eval()
+    try:
+        with torch.no_grad(), warnings.catch_warnings():
+            # The legacy exporter is chosen on purpose (module docstring), and the LSTM batch-size warning's advice
+            # (batch 1, h0/c0 as inputs) is what this export does; other warnings still show.
+            warnings.filterwarnings("ignore", message=".*legacy TorchScript-based ONNX", category=DeprecationWarning)
+            warnings.filterwarnings("ignore", message="The feature will be removed", category=DeprecationWarning)
+            warnings.filterwarnings("ignore", message="Exporting a model to ONNX with a batch_size other than 1")
+            # nn.LSTM's own input-shape checks; the shapes are fixed by design (no dynamic axes).
+            warnings.filterwarnings("ignore", category=torch.jit.TracerWarning, module=r"torch\.nn\.modules\.rnn")
+            outputs = model(*example_inputs)
+            outputs = outputs if isinstance(outputs, tuple) else (outputs,)
+            torch.onnx.export(model, example_inputs, str(path), input_names=list(input_names),
+                              output_names=list(output_names), opset_version=opset, dynamo=False,
+                              dynamic_axes=None, do_constant_folding=True, export_params=True,
+                              keep_initializers_as_inputs=False)
+    finally:
+        model.train(was_training)
+
+    proto = onnx.load(str(path))
+    onnx.checker.check_model(proto)
+    _check_io(proto.graph.input, input_names, [tuple(t.shape) for t in example_inputs], "input", path)
+    _check_io(proto.graph.output, output_names, [tuple(t.shape) for t in outputs], "output", path)
+    counts = Counter(node.op_type for node in proto.graph.node)
+    for op_type, expected in op_counts.items():
+        if counts[op_type] != expected:
+            raise ExportError(f"{path}: expected exactly {expected} {op_type} node(s), the graph has "
+                              f"{counts[op_type]} (ops: {dict(sorted(counts.items()))})")
+
+    sidecar = {
+        "file": path.name,
+        "sha256": _sha256(path),
+        "opset": opset,
+        "exporter": "torch.onnx.export(dynamo=False)",
+        "torch": torch.__version__,
+        "onnx": onnx.__version__,
+        "onnxruntime": onnxruntime.__version__,
+        "inputs": {name: list(t.shape) for name, t in zip(input_names, example_inputs, strict=True)},
+        "outputs": {name: list(t.shape) for name, t in zip(output_names, outputs, strict=True)},
+        "dtype": "float32",
+        "n_nodes": len(proto.graph.node),
+        **metadata,
+    }
+    sidecar_path(path).write_text(json.dumps(sidecar, indent=2) + "\n")
+    return path
+
+
+def export_pinn_onnx(model: PinnStep, path: str | Path, *, opset: int = 17) -> Path:
+    """Export one PINN tick: q, qd, tau [1, n], h, c [layers, 1, hidden] -> q_next, qd_next, h_next, c_next."""
+    config = model.config
+    n = config.n_joints
+    example = (torch.zeros(1, n), torch.zeros(1, n), torch.zeros(1, n), *model.initial_state(1))
+    example = tuple(t.to(torch.float32) for t in example)
+    if model.b_eye.dtype != torch.float32:
+        raise ExportError(f"the PINN's parameters are {model.b_eye.dtype}; export a float32 model")
+    return _export_checked(
+        model, example, path,
+        input_names=("q", "qd", "tau", "h", "c"), output_names=("q_next", "qd_next", "h_next", "c_next"),
+        opset=opset, op_counts={"LSTM": config.lstm_layers},
+        metadata={"kind": "pinn_step", "n_joints": n, "hidden": config.lstm_hidden, "layers": config.lstm_layers,
+                  "dt": config.dt, "b": config.b, "resnet_widths": list(config.resnet_widths),
+                  "activation": config.activation},
+    )
+
+
+def export_mlp_policy_onnx(model: nn.Module, path: str | Path, obs_dim: int, n_joints: int, *,
+                           opset: int = 17) -> Path:
+    """Export a feed-forward policy: obs [1, obs_dim] -> action [1, n_joints]."""
+    if obs_dim <= 0 or n_joints <= 0:
+        raise ValueError(f"obs_dim and n_joints must be > 0, got {obs_dim} and {n_joints}")
+    obs = torch.zeros(1, obs_dim)
+    with torch.no_grad():
+        action = model(obs)
+    if not isinstance(action, torch.Tensor) or tuple(action.shape) != (1, n_joints):
+        got = tuple(action.shape) if isinstance(action, torch.Tensor) else type(action).__name__
+        raise ValueError(f"the policy maps obs [1, {obs_dim}] to {got}, expected action [1, {n_joints}]")
+    return _export_checked(model, (obs,), path, input_names=("obs",), output_names=("action",), opset=opset,
+                           op_counts={}, metadata={"kind": "mlp_policy", "obs_dim": obs_dim, "n_joints": n_joints})
+
+
+def make_random_policy(obs_dim: int, n_joints: int, hidden: Sequence[int] = (64, 64), seed: int = 0) -> nn.Module:
+    """An MLP policy with ELU and random weights drawn from `seed`, a stand-in until the trained policy exists.
+    The global RNG is left untouched."""
+    sizes = [obs_dim, *hidden, n_joints]
+    layers: list[nn.Module] = []
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        for i, (w_in, w_out) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
+            if i:
+                layers.append(nn.ELU())
+            layers.append(nn.Linear(w_in, w_out))
+    return nn.Sequential(*layers)

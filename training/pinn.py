@@ -1,0 +1,210 @@
+"""The paper's physics-informed forward-dynamics step (§III-A), one module for training and for the 1 kHz tick.
+
+    M^-1(q) = (L(q) + bI)^T (L(q) + bI)           Eq. 5, L lower-triangular from a ResNet on q
+    (f_n, dq) = head(LSTM([q, qd, tau]))           f_n: the lumped term of Eq. 4, dq: the Euler correction
+    qdd = M^-1 (tau + f_n)                         Eq. 4
+    q' = q + qd dt + dq,   qd' = qd + qdd dt       Eq. 6, explicit Euler: q' uses the old qd
+
+`PinnStep.forward(q, qd, tau, h, c) -> (q', qd', h', c')` is exactly one control tick with the LSTM state as
+explicit input and output, so the exported ONNX graph (training/export.py) is called once per tick and the
+caller feeds h', c' back (onnxruntime is stateless). Training unrolls the same module over windows against
+Eq. 7. Normalisation constants are buffers inside the module, so torch and onnxruntime apply identical scaling.
+M^-1 is assembled and applied, never inverted.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+OptionalArray = np.ndarray | torch.Tensor | Sequence[float] | None
+
+ACTIVATIONS = {"tanh": nn.Tanh, "elu": nn.ELU}
+
+
+@dataclass(frozen=True)
+class PinnConfig:
+    """Sizes and constants of the PINN; the defaults are the paper's (§IV-B)."""
+
+    n_joints: int = 10
+    dt: float = 1e-3
+    resnet_widths: tuple[int, ...] = (20, 32, 48, 55)
+    b: float = 0.3
+    lstm_hidden: int = 72
+    lstm_layers: int = 3
+    # ResNet activation. tanh, because M^-1(q) of a rigid-body chain is a smooth (trigonometric) function of the
+    # joint angles: tanh is smooth and saturates outside the training range, ELU is only C^1 and grows linearly.
+    # "elu" stays selectable for an ablation. (The LSTM's gates use their own fixed sigmoid/tanh.)
+    activation: str = "tanh"
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.n_joints, int) and self.n_joints > 0):
+            raise ValueError(f"PinnConfig.n_joints: expected an integer > 0, got {self.n_joints!r}")
+        if not self.dt > 0:
+            raise ValueError(f"PinnConfig.dt: expected a time step > 0 s, got {self.dt!r}")
+        widths = tuple(self.resnet_widths)
+        if not widths or not all(isinstance(w, int) and w > 0 for w in widths):
+            raise ValueError(f"PinnConfig.resnet_widths: expected positive integer widths, got {widths!r}")
+        n_tril = self.n_joints * (self.n_joints + 1) // 2
+        if widths[-1] != n_tril:
+            raise ValueError(f"PinnConfig.resnet_widths: the last width fills the lower triangle of L, so it must be "
+                             f"n(n+1)/2 = {n_tril} for n_joints={self.n_joints}, got {widths[-1]}")
+        if not self.b > 0:
+            raise ValueError(f"PinnConfig.b: expected a diagonal bias > 0 (Eq. 5), got {self.b!r}")
+        if not (isinstance(self.lstm_hidden, int) and self.lstm_hidden > 0):
+            raise ValueError(f"PinnConfig.lstm_hidden: expected an integer > 0, got {self.lstm_hidden!r}")
+        if not (isinstance(self.lstm_layers, int) and self.lstm_layers > 0):
+            raise ValueError(f"PinnConfig.lstm_layers: expected an integer > 0, got {self.lstm_layers!r}")
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"PinnConfig.activation: expected one of {sorted(ACTIVATIONS)}, got {self.activation!r}")
+        object.__setattr__(self, "resnet_widths", widths)
+
+    @property
+    def n_tril(self) -> int:
+        return self.n_joints * (self.n_joints + 1) // 2
+
+
+class ResidualLayer(nn.Module):
+    """y = act(W x + b) + skip(x); the skip is the identity when the widths match and a bias-free linear
+    projection otherwise (every layer of the paper's 10->20->32->48 changes width, so all of them project)."""
+
+    def __init__(self, width_in: int, width_out: int, activation: str):
+        super().__init__()
+        self.linear = nn.Linear(width_in, width_out)
+        self.act = ACTIVATIONS[activation]()
+        self.skip = nn.Identity() if width_in == width_out else nn.Linear(width_in, width_out, bias=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.act(self.linear(x)) + self.skip(x)
+
+
+class TrilResNet(nn.Module):
+    """Normalised q -> the n(n+1)/2 entries of L. Hidden layers are `ResidualLayer`s; the last layer is plain
+    linear, because L's entries are signed and unbounded, and a linear skip around a linear layer adds nothing."""
+
+    def __init__(self, n_in: int, widths: Sequence[int], activation: str):
+        super().__init__()
+        sizes = [n_in, *widths]
+        pairs = zip(sizes[:-2], sizes[1:-1], strict=True)
+        self.hidden = nn.Sequential(*(ResidualLayer(w_in, w_out, activation) for w_in, w_out in pairs))
+        self.out = nn.Linear(sizes[-2], sizes[-1])
+
+    def forward(self, q_norm: torch.Tensor) -> torch.Tensor:
+        return self.out(self.hidden(q_norm))
+
+
+def tril_placement(n: int) -> torch.Tensor:
+    """[n(n+1)/2, n*n] 0/1 matrix: entries @ P is L row-major flattened, entry k going to the k-th lower-triangular
+    position in row-major order (torch.tril_indices). A constant MatMul exports cleanly, unlike index_put/scatter."""
+    rows, cols = torch.tril_indices(n, n)
+    placement = torch.zeros(rows.numel(), n * n)
+    placement[torch.arange(rows.numel()), rows * n + cols] = 1.0
+    return placement
+
+
+class PinnStep(nn.Module):
+    """One Eq. 4-6 step: (q, qd, tau [B, n], h, c [layers, B, hidden]) -> (q', qd', h', c')."""
+
+    def __init__(self, config: PinnConfig | None = None):
+        super().__init__()
+        self.config = config = config or PinnConfig()
+        n = config.n_joints
+        self.n_joints = n
+        self.dt = config.dt
+
+        for name in ("q", "qd", "tau"):
+            self.register_buffer(f"{name}_mean", torch.zeros(n))
+            self.register_buffer(f"{name}_std", torch.ones(n))
+        # Denormalisation of the head: f_n in torque units, dq in radians. Training fits them (issue #5).
+        self.register_buffer("fn_scale", torch.ones(n))
+        self.register_buffer("dq_scale", torch.ones(n))
+
+        self.resnet = TrilResNet(n, config.resnet_widths, config.activation)
+        self.register_buffer("placement", tril_placement(n))
+        # b I of Eq. 5, flattened like L, added after the placement MatMul.
+        self.register_buffer("b_eye", (config.b * torch.eye(n)).reshape(n * n))
+
+        # Sequence-first (batch_first=False): the ONNX LSTM op is [seq, batch, feature], so the exporter needs no
+        # transposes; each call is one time step (seq = 1).
+        self.lstm = nn.LSTM(input_size=3 * n, hidden_size=config.lstm_hidden, num_layers=config.lstm_layers)
+        self.head = nn.Linear(config.lstm_hidden, 2 * n)
+        # Zero head: an untrained model predicts f_n = 0 and dq = 0, i.e. q' = q + qd dt, qd' = qd + M^-1 tau dt.
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+
+    def set_normalisation(self, *, q_mean: OptionalArray = None, q_std: OptionalArray = None,
+                          qd_mean: OptionalArray = None, qd_std: OptionalArray = None,
+                          tau_mean: OptionalArray = None, tau_std: OptionalArray = None,
+                          fn_scale: OptionalArray = None, dq_scale: OptionalArray = None) -> None:
+        """Set the input statistics and output scales given (each [n_joints]); the others keep their values.
+
+        Stds and scales must be > 0. Values are copied into the buffers, so they travel with state_dict and export.
+        """
+        given = {"q_mean": q_mean, "q_std": q_std, "qd_mean": qd_mean, "qd_std": qd_std, "tau_mean": tau_mean,
+                 "tau_std": tau_std, "fn_scale": fn_scale, "dq_scale": dq_scale}
+        checked = {}
+        for name, value in given.items():
+            if value is None:
+                continue
+            tensor = torch.as_tensor(np.asarray(value, dtype=np.float64))
+            buffer = getattr(self, name)
+            if tensor.shape != buffer.shape:
+                raise ValueError(f"set_normalisation: {name} must have shape {tuple(buffer.shape)}, "
+                                 f"got {tuple(tensor.shape)}")
+            if not torch.isfinite(tensor).all():
+                raise ValueError(f"set_normalisation: {name} has non-finite entries")
+            if not name.endswith("_mean") and not (tensor > 0).all():
+                raise ValueError(f"set_normalisation: {name} must be > 0 everywhere, got {tensor.tolist()}")
+            checked[name] = tensor
+        with torch.no_grad():  # all or nothing: a bad value leaves every buffer as it was
+            for name, tensor in checked.items():
+                getattr(self, name).copy_(tensor.to(getattr(self, name).dtype))
+
+    def initial_state(self, batch: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+        """Zero LSTM state (h, c), each [layers, batch, hidden], in the module's dtype and device."""
+        shape = (self.config.lstm_layers, batch, self.config.lstm_hidden)
+        like = self.b_eye
+        return like.new_zeros(shape), like.new_zeros(shape)
+
+    def _chol_factor(self, q_norm: torch.Tensor) -> torch.Tensor:
+        """A = L + bI, [B, n, n], from normalised q."""
+        n = self.n_joints
+        flat = self.resnet(q_norm) @ self.placement + self.b_eye
+        return flat.reshape(-1, n, n)
+
+    def minv(self, q: torch.Tensor) -> torch.Tensor:
+        """M^-1(q) = (L + bI)^T (L + bI), [B, n, n] (Eq. 5), for raw joint angles q [B, n]."""
+        factor = self._chol_factor((q - self.q_mean) / self.q_std)
+        return factor.transpose(1, 2) @ factor
+
+    def forward(self, q: torch.Tensor, qd: torch.Tensor, tau: torch.Tensor, h: torch.Tensor, c: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        n = self.n_joints
+        mean = torch.cat([self.q_mean, self.qd_mean, self.tau_mean])
+        std = torch.cat([self.q_std, self.qd_std, self.tau_std])
+        features = (torch.cat([q, qd, tau], dim=1) - mean) / std  # [B, 3n], normalised
+        q_norm = features[:, :n]
+
+        factor = self._chol_factor(q_norm)
+        minv = factor.transpose(1, 2) @ factor
+
+        lstm_out, (h_next, c_next) = self.lstm(features.unsqueeze(0), (h, c))
+        head = self.head(lstm_out.squeeze(0)) * torch.cat([self.fn_scale, self.dq_scale])
+        f_n, dq = head.split(n, dim=1)
+
+        qdd = (minv @ (tau + f_n).unsqueeze(2)).squeeze(2)  # Eq. 4
+        q_next = q + qd * self.dt + dq  # Eq. 6, old qd
+        qd_next = qd + qdd * self.dt
+        return q_next, qd_next, h_next, c_next
+
+
+def make_random_pinn(config: PinnConfig | None = None, seed: int = 0) -> PinnStep:
+    """A PinnStep with torch's default initialisation drawn from `seed` and a zero head; the global RNG is left
+    untouched."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        return PinnStep(config)
