@@ -31,6 +31,12 @@ def tilt_angle(imu: ImuSample) -> float:
     return math.acos(max(-1.0, min(1.0, float(world_up_in_body(imu)[2]))))
 
 
+def tilt_of(quat: np.ndarray) -> float:
+    """Angle between the z axis of a (w, x, y, z) orientation and the world's (rad)."""
+    w, x, y, z = quat
+    return math.acos(max(-1.0, min(1.0, 1.0 - 2.0 * (x * x + y * y))))
+
+
 def euler_of(quat: np.ndarray) -> np.ndarray:
     """(roll, pitch, yaw), ZYX convention, of a (w, x, y, z) quaternion."""
     w, x, y, z = quat

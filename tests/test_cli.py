@@ -63,3 +63,27 @@ def test_signal_ends_in_damping_with_a_clean_exit_and_stats(tmp_path, sig):
     assert data["ticks"] > 0 and data["fell"] is False
     assert f"final state: fault: damping ({sig.name})" in started + out
     assert f"damping ({sig.name})" in err  # the one log line of the transition
+
+
+def test_saved_rrd_is_complete_after_ctrl_c(tmp_path):
+    from test_telemetry import rrd_entity_paths
+
+    recording = tmp_path / "runs" / "run.rrd"
+    proc = subprocess.Popen([sys.executable, "-m", "runtime.cli", "--realtime", "--rerun", f"save={recording}"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        started = proc.stdout.readline()
+        assert "backend active" in started, proc.communicate()
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    assert "final state: fault: damping (SIGINT)" in out
+    paths = rrd_entity_paths(recording)  # reads the footer: fails on a file that was not closed properly
+    expected = {"joints/r_knee/position", "joints/l_ankle/velocity", "joints/r_hip_yaw/torque", "loop/period_us",
+                "loop/work_us", "safety/state", "safety/events", "world/robot/base", "world/robot/r_foot",
+                "world/base_trajectory"}
+    assert expected <= paths, expected - paths

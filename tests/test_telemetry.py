@@ -1,4 +1,6 @@
 import math
+import os
+import signal
 import socket
 import subprocess
 import sys
@@ -88,7 +90,7 @@ def test_make_telemetry_is_none_for_off(config, tmp_path):
 
 def test_a_full_buffer_drops_the_oldest_rows_and_counts_them(config, tmp_path):
     path = tmp_path / "overflow.rrd"
-    # The consumer's first wake-up is a minute away, so nothing drains until close().
+    # The telemetry process's first batch is a minute away, so nothing drains until close().
     telemetry = Telemetry(config, parse_sink(f"save={path}"), capacity=8, batch_period_s=60.0)
     telemetry.start()
     for tick in range(20):
@@ -97,6 +99,36 @@ def test_a_full_buffer_drops_the_oldest_rows_and_counts_them(config, tmp_path):
     telemetry.close()
     assert telemetry.dropped == 12 and telemetry.sent_rows == 8 and telemetry.error is None
     assert sorted(rrd_rows(path, "loop/period_us", "Scalars:scalars")) == list(range(12, 20))
+
+
+def test_rows_appended_faster_than_the_child_drains_are_dropped_oldest_first(config, tmp_path):
+    path = tmp_path / "lapped.rrd"
+    capacity, bursts, per_burst = 16, 12, 250
+    telemetry = Telemetry(config, parse_sink(f"save={path}"), capacity=capacity, batch_period_s=0.01)
+    telemetry.start()
+    tick = 0
+    for _ in range(bursts):  # each burst laps the ring many times before the next batch
+        for _ in range(per_burst):
+            telemetry.append(tick, tick / 1000, *joint_row(config, tick, with_pinn=tick % 2 == 0))
+            telemetry.append_pose(tick, tick / 1000, np.zeros((3, 3)), np.zeros((3, 4)))  # no model: ignored
+            tick += 1
+        time.sleep(0.03)
+    telemetry.close()
+    total = bursts * per_burst
+    assert telemetry.error is None and telemetry.sent_poses == telemetry.dropped_poses == 0
+    assert telemetry.dropped > 0 and telemetry.sent_rows + telemetry.dropped == total
+    assert telemetry.sent_rows >= capacity
+
+    knee = config.joints.index("r_knee")
+    positions = rrd_rows(path, "joints/r_knee/position", "Scalars:scalars")
+    assert len(positions) == telemetry.sent_rows
+    assert set(range(total - capacity, total)) <= set(positions)  # the newest rows survive
+    for t, (q, q_hat, a) in positions.items():  # no torn row: every value is the one appended at its tick
+        assert q == pytest.approx(t + knee / 100) and a == pytest.approx(t + knee / 100 + 4 / 1000)
+        assert math.isnan(q_hat) if t % 2 else q_hat == pytest.approx(t + knee / 100 + 2 / 1000)
+    drops = rrd_rows(path, "telemetry/dropped", "Scalars:scalars")
+    counts = [drops[t][0] for t in sorted(drops)]
+    assert counts == sorted(counts) and 0 < counts[-1] <= telemetry.dropped
 
 
 def test_save_round_trip_with_the_mock_model(config, model, tmp_path):
@@ -167,6 +199,14 @@ def test_a_failed_start_names_the_sink_and_close_still_works(config, tmp_path):
     telemetry.close()
 
 
+def test_a_failure_inside_the_telemetry_process_reaches_start(config, tmp_path):
+    telemetry = Telemetry(config, parse_sink(f"save={tmp_path}"))  # a directory: rerun cannot create the file
+    with pytest.raises(TelemetryError, match=f"rerun sink save={tmp_path}: .*[Dd]irectory"):
+        telemetry.start()
+    telemetry.close()
+    assert telemetry._proc is None  # the telemetry process is gone
+
+
 def test_spawn_without_a_display_fails_clearly(config, monkeypatch):
     if not sys.platform.startswith("linux"):
         pytest.skip("the display check is for Linux")
@@ -227,7 +267,10 @@ def test_a_failing_batch_is_recorded_and_later_batches_still_go_out(config, tmp_
 
 
 CHILD = """
+import os
+import signal
 import sys
+import time
 import numpy as np
 from bruce_hw import load_config
 from runtime.telemetry import Telemetry, parse_sink
@@ -241,17 +284,46 @@ for tick in range(100):
 print("appended", flush=True)
 if sys.argv[2] == "interrupt":
     raise KeyboardInterrupt  # what an unhandled Ctrl-C does
+if sys.argv[2] == "sigint":
+    time.sleep(60)  # the test sends SIGINT to the whole process group, as a terminal's Ctrl-C does
+if sys.argv[2] == "sigkill":
+    os.kill(os.getpid(), signal.SIGKILL)  # no atexit, no close(): the telemetry process is on its own
 """
 
 
-@pytest.mark.parametrize("how", ["return", "interrupt"])
+def wait_for_complete_rrd(path, timeout_s: float = 30.0) -> None:
+    """An orphaned telemetry process finishes the file by itself; wait until its footer is there."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            rrd_entity_paths(path)
+            return
+        except Exception:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
+@pytest.mark.parametrize("how", ["return", "interrupt", "sigint", "sigkill"])
 def test_a_process_leaving_without_close_still_writes_a_complete_file(tmp_path, how):
     path = tmp_path / "child.rrd"
     script = tmp_path / "child.py"
     script.write_text(textwrap.dedent(CHILD))
-    done = subprocess.run([sys.executable, str(script), f"save={path}", how], capture_output=True, text=True,
-                          timeout=60)
-    assert "appended" in done.stdout
-    assert (done.returncode == 0) == (how == "return"), done.stderr
+    parent = subprocess.Popen([sys.executable, str(script), f"save={path}", how], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        assert parent.stdout.readline().strip() == "appended"
+        if how == "sigint":
+            os.killpg(parent.pid, signal.SIGINT)  # the parent and its telemetry process alike
+        out, err = parent.communicate(timeout=60)
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+    # An unhandled KeyboardInterrupt ends Python by SIGINT (older versions: exit status 1).
+    expected = {"return": {0}, "interrupt": {1, -signal.SIGINT}, "sigint": {1, -signal.SIGINT},
+                "sigkill": {-signal.SIGKILL}}[how]
+    assert parent.returncode in expected, err
+    if how == "sigkill":
+        wait_for_complete_rrd(path)
     assert "loop/period_us" in rrd_entity_paths(path)  # raises if the footer is missing
     assert sorted(rrd_rows(path, "loop/period_us", "Scalars:scalars")) == list(range(100))
