@@ -1,13 +1,15 @@
 """One PINN step (the paper's network, random weights): torch eager vs onnxruntime, and ORT's call paths.
 
-All measured in one run, interleaved in blocks, on one pinned core with the garbage collector off, each a
-closed loop that feeds q', qd', h', c' back as the next inputs:
+All measured in one run, interleaved in blocks, on one pinned core with the garbage collector off, each
+carrying the LSTM state (h', c') into the next call with fixed (q, qd, tau) inputs (fed-back states of an
+untrained model drift without bound over 10^5 calls; the cost of a call does not depend on the values):
 - torch eager: `PinnStep` under `torch.inference_mode()`, one intra-op thread, tensors fed back as tensors;
 - torch eager, numpy in/out: the same, called the way the runtime calls a PINN (float64 numpy in and out);
 - runtime: `runtime.inference.OnnxPinn.step` exactly as the 1 kHz loop calls it (float64 in and out,
   IOBinding ping-pong, non-finite check);
 - ORT call paths on the same session: `run(names, feeds)`, `run_with_iobinding(io)`,
-  `run_with_iobinding(io, RunOptions)` and `run_with_ort_values`, to show why the runtime uses the second.
+  `run_with_iobinding(io, RunOptions)` and `run_with_ort_values`, to show why the runtime uses the second
+  (bound rows repeat one call on fixed buffers).
 Goals (issue #3): the runtime's ORT step p99 <= 100 µs and >= 10x faster than torch eager.
 
     python bench/bench_pinn_step.py [--calls 20000] [--blocks 4]
@@ -61,7 +63,7 @@ class TorchLoop:
 
     def __call__(self) -> None:
         with torch.inference_mode():
-            self.q, self.qd, self.h, self.c = self.model(self.q, self.qd, self.tau, self.h, self.c)
+            self.q_next, self.qd_next, self.h, self.c = self.model(self.q, self.qd, self.tau, self.h, self.c)
 
 
 class TorchNumpyLoop(TorchLoop):
@@ -76,8 +78,8 @@ class TorchNumpyLoop(TorchLoop):
         with torch.inference_mode():
             q, qd = (torch.from_numpy(v).float().unsqueeze(0) for v in (self.q_np, self.qd_np))
             tau = torch.from_numpy(self.tau_np).float().unsqueeze(0)
-            q, qd, self.h, self.c = self.model(q, qd, tau, self.h, self.c)
-            self.q_np, self.qd_np = q[0].double().numpy(), qd[0].double().numpy()
+            q_next, qd_next, self.h, self.c = self.model(q, qd, tau, self.h, self.c)
+            self.q_next, self.qd_next = q_next[0].double().numpy(), qd_next[0].double().numpy()
 
 
 class RuntimeLoop:
@@ -87,7 +89,7 @@ class RuntimeLoop:
         self.q, self.qd, self.tau = np.zeros(n), np.zeros(n), np.full(n, 0.1)
 
     def __call__(self) -> None:
-        self.q, self.qd = self.pinn.step(self.q, self.qd, self.tau)
+        self.q_next, self.qd_next = self.pinn.step(self.q, self.qd, self.tau)
 
 
 class CallPath:
@@ -115,8 +117,8 @@ class CallPath:
 
     def __call__(self) -> None:
         if self.kind == "run":
-            q, qd, h, c = self.session.run(self.outputs, self.feeds)
-            self.feeds.update(q=q, qd=qd, h=h, c=c)
+            _, _, h, c = self.session.run(self.outputs, self.feeds)
+            self.feeds.update(h=h, c=c)
         elif self.kind == "iobinding":
             self.session.run_with_iobinding(self.io)
         elif self.kind == "iobinding+RunOptions":
