@@ -26,9 +26,20 @@ def world_up_in_body(imu: ImuSample) -> np.ndarray:
     return imu.accel / norm if norm > 0 else np.array([0.0, 0.0, 1.0])
 
 
+def cos_tilt(imu: ImuSample) -> float:
+    """Cosine of the angle between the base's z axis and the world's: the z component of world_up_in_body, in
+    scalar math because the safety stage evaluates it every tick."""
+    if imu.orientation is not None:
+        _, x, y, _ = imu.orientation
+        return 1.0 - 2.0 * (x * x + y * y)
+    a = imu.accel
+    norm = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+    return a[2] / norm if norm > 0 else 1.0
+
+
 def tilt_angle(imu: ImuSample) -> float:
     """Angle between the base's z axis and the world's (rad)."""
-    return math.acos(max(-1.0, min(1.0, float(world_up_in_body(imu)[2]))))
+    return math.acos(max(-1.0, min(1.0, float(cos_tilt(imu)))))
 
 
 def tilt_of(quat: np.ndarray) -> float:

@@ -77,7 +77,6 @@ class GroundTruthLog:
 class RunSummary:
     backend: str
     transfer: str = "direct"
-    ticks: int = 0
     wall_time: float = 0.0
     realtime: bool = False
     final_state: str = "unconfigured"
@@ -88,10 +87,13 @@ class RunSummary:
     realtime_grant: RealtimeGrant | None = None
     truth: GroundTruthLog | None = None
 
+    @property
+    def ticks(self) -> int:
+        return self.loop.ticks
+
     def to_json(self) -> dict:
         out = {k: v for k, v in asdict(self).items() if k not in ("truth", "loop", "realtime_grant")}
         out.update(self.loop.to_json())
-        out["ticks"] = self.ticks
         out["realtime_grant"] = self.realtime_grant.to_json() if self.realtime_grant else None
         if self.truth is not None:
             out.update(asdict(self.truth))
@@ -287,7 +289,8 @@ def _loop(backend: Backend, config: RobotConfig, controller, pinn, telemetry, su
         t0 = perf()
         robot = backend.read()
         t1 = perf()
-        safety.check(robot, backend.clock(), late)
+        now = backend.clock()  # read once: the age check and the telemetry timeline share it
+        safety.check(robot, now, late)
         if safety.tripped:
             break
         q, qd = robot.joints.q, robot.joints.qd
@@ -316,14 +319,14 @@ def _loop(backend: Backend, config: RobotConfig, controller, pinn, telemetry, su
         backend.write(JointCommand(tau_ff=tau))
         t7 = perf()
         if telemetry is not None:
-            now = backend.clock() - clock0
-            telemetry.append(tick, now, q, qd, q_hat, qd_hat, a, tau_star, tau, (t0 - previous_start) / 1e3,
+            elapsed = now - clock0
+            telemetry.append(tick, elapsed, q, qd, q_hat, qd_hat, a, tau_star, tau, (t0 - previous_start) / 1e3,
                              (t7 - t0) / 1e3, int(safety.state))
             if poses and tick % pose_every == 0:
-                telemetry.append_pose(tick, now, *backend.body_poses())
+                telemetry.append_pose(tick, elapsed, *backend.body_poses())
             if len(safety.transitions) > events_sent:
                 for _, text in safety.transitions[events_sent:]:
-                    telemetry.event(tick, now, text, "info")
+                    telemetry.event(tick, elapsed, text, "info")
                 events_sent = len(safety.transitions)
         t8 = perf()
         if truth is not None and tick % decimation == TRUTH_PHASE:
@@ -340,7 +343,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, pinn, telemetry, su
             stats.period.add(t0 - previous_start)
         previous_start = t0
         tick += 1
-        summary.ticks = stats.ticks = tick
+        stats.ticks = tick
     stats.late_ticks, stats.skipped_ticks = pacer.late_ticks, pacer.skipped_ticks
 
     if stop.cause is not None:

@@ -24,6 +24,7 @@ import numpy as np
 
 from bruce_hw.config import RobotConfig
 from bruce_hw.types import RobotState, all_finite
+from runtime.estimation import cos_tilt, tilt_angle
 
 log = logging.getLogger("runtime.safety")
 
@@ -93,17 +94,10 @@ class SafetyStage:
             which = "joint" if joints.stamp <= imu.stamp else "IMU"
             return self.trip(f"stale {which} data: {1e3 * age:.1f} ms old > safety.max_sensor_age_s "
                              f"{1e3 * self.max_age:.1f} ms")
-        if imu.orientation is not None:
-            w, x, y, z = imu.orientation
-            cos_tilt = 1.0 - 2.0 * (x * x + y * y)
-        else:
-            a = imu.accel
-            norm = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
-            cos_tilt = a[2] / norm if norm > 0 else 1.0
-        if cos_tilt < self.cos_tilt_limit:
+        if cos_tilt(imu) < self.cos_tilt_limit:
             self.tilted_ticks += 1
             if self.tilted_ticks >= self.tilt_ticks:
-                tilt = math.degrees(math.acos(max(-1.0, min(1.0, cos_tilt))))
+                tilt = math.degrees(tilt_angle(imu))
                 return self.trip(f"tilt {tilt:.0f} deg > safety.tilt_limit_deg for {self.tilted_ticks} ticks")
         else:
             self.tilted_ticks = 0

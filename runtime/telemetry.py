@@ -303,15 +303,19 @@ class Telemetry:
     def sent_rows(self) -> int:
         return self._final[0] if self._final else int(self._stats[ROWS_SENT])
 
+    def _dropped_live(self, written: int, rejected: int, read: int, overrun: int, failed: int, capacity: int) -> int:
+        """Rejected here, overwritten before the child read them, lost in a failed send, or already lapped."""
+        stats = self._stats
+        unread = written - int(stats[read])
+        return rejected + int(stats[overrun]) + int(stats[failed]) + max(0, unread - capacity)
+
     @property
     def dropped(self) -> int:
         """Joint rows that never reached rerun: overwritten in a full ring, rejected, or lost in a failed send."""
         if self._final:
             return self._final[1]
-        stats = self._stats
-        unread = self._n_rows - int(stats[ROWS_READ])
-        return (self._rejected_rows + int(stats[ROWS_OVERRUN]) + int(stats[ROWS_FAILED])
-                + max(0, unread - self.capacity))
+        return self._dropped_live(self._n_rows, self._rejected_rows, ROWS_READ, ROWS_OVERRUN, ROWS_FAILED,
+                                  self.capacity)
 
     @property
     def sent_poses(self) -> int:
@@ -321,10 +325,8 @@ class Telemetry:
     def dropped_poses(self) -> int:
         if self._final:
             return self._final[3]
-        stats = self._stats
-        unread = self._n_poses - int(stats[POSES_READ])
-        return (self._rejected_poses + int(stats[POSES_OVERRUN]) + int(stats[POSES_FAILED])
-                + max(0, unread - self._pose_capacity))
+        return self._dropped_live(self._n_poses, self._rejected_poses, POSES_READ, POSES_OVERRUN, POSES_FAILED,
+                                  self._pose_capacity)
 
     @property
     def error(self) -> BaseException | None:
