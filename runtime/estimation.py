@@ -1,19 +1,22 @@
-"""Base attitude from the IMU, and the base state the walking policy observes (paper Table I).
+"""Base attitude from the IMU, and the base state the walking controllers observe (paper Table I).
 
-`BaseEstimate` is what the policy needs beyond the joints: the base's linear and angular velocity in its own
-frame and its Euler angles. `GroundTruthEstimator` reads them from the simulator's truth; it exists only for
-the mock, and a backend without ground truth is refused with a clear error.
+`BaseEstimate` is what a controller needs beyond the joints: the base's orientation, its linear and angular
+velocity in its own frame, and its Euler angles. Every estimator follows `Estimator`: the loop calls
+`update(state)` on every tick (an IMU-driven filter integrates at the loop rate) and `estimate()` on policy
+ticks. `GroundTruthEstimator` reads the simulator's truth; it exists only for the mock, and a backend without
+ground truth is refused with a clear error.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
 from bruce_hw.backend import Backend, BackendError
-from bruce_hw.types import ImuSample
+from bruce_hw.types import ImuSample, RobotState
 
 
 def world_up_in_body(imu: ImuSample) -> np.ndarray:
@@ -68,9 +71,21 @@ def rotate_to_body(quat: np.ndarray, v_world: np.ndarray) -> np.ndarray:
 
 @dataclass(slots=True)
 class BaseEstimate:
+    quat: np.ndarray    # (w, x, y, z), base -> world (yaw relative to where the estimator started, on a robot)
     linvel: np.ndarray  # m/s, base frame
     angvel: np.ndarray  # rad/s, base frame
-    euler: np.ndarray   # rad, (roll, pitch, yaw)
+    euler: np.ndarray   # rad, (roll, pitch, yaw) of quat
+
+
+class Estimator(Protocol):
+    def reset(self, state: RobotState) -> None:
+        """Start from the robot at rest in `state` (called once before the loop)."""
+
+    def update(self, state: RobotState) -> None:
+        """Take in one tick's measurements (called every tick, so it must be cheap)."""
+
+    def estimate(self) -> BaseEstimate:
+        """The current estimate (called on policy ticks)."""
 
 
 class GroundTruthEstimator:
@@ -82,7 +97,27 @@ class GroundTruthEstimator:
                              "only the mock can run an ONNX policy until an IMU + kinematics estimator exists")
         self.backend = backend
 
-    def __call__(self) -> BaseEstimate:
+    def reset(self, state: RobotState) -> None:
+        pass
+
+    def update(self, state: RobotState) -> None:
+        pass  # the truth is read when an estimate is asked for
+
+    def estimate(self) -> BaseEstimate:
         truth = self.backend.ground_truth()
-        return BaseEstimate(linvel=rotate_to_body(truth.base_quat, truth.base_linvel),
-                            angvel=truth.base_angvel.copy(), euler=euler_of(truth.base_quat))
+        return BaseEstimate(quat=truth.base_quat, linvel=rotate_to_body(truth.base_quat, truth.base_linvel),
+                            angvel=truth.base_angvel, euler=euler_of(truth.base_quat))
+
+
+ESTIMATORS = ("truth", "kinematic")
+
+
+def make_estimator(kind: str, backend: Backend, config) -> Estimator:
+    """`truth`: the simulator's ground truth (mock only); `kinematic`: IMU + leg kinematics + contacts."""
+    if kind == "truth":
+        return GroundTruthEstimator(backend)
+    if kind == "kinematic":
+        from runtime.kinematic_estimator import KinematicEstimator
+
+        return KinematicEstimator(config)
+    raise ValueError(f"unknown estimator {kind!r} (expected one of {', '.join(ESTIMATORS)})")

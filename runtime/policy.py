@@ -19,8 +19,6 @@ its graph):
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-
 import numpy as np
 
 from bruce_hw.config import RobotConfig
@@ -61,23 +59,21 @@ class ObservationBuilder:
 
 
 class PolicyController:
-    """Same interface as the standing controller: reset(q) at start, then a_t = controller(state) at 100 Hz."""
+    """The nominal-controller interface: reset(q) at start, then a_t = controller(state, base, command) at the
+    policy rate, with `command` = (vx, vy, yaw rate) in the heading frame."""
 
-    def __init__(self, config: RobotConfig, policy: OnnxPolicy, estimator: Callable[[], BaseEstimate],
-                 command: np.ndarray | None = None):
+    def __init__(self, config: RobotConfig, policy: OnnxPolicy):
         self.builder = ObservationBuilder(config)
         self.policy = policy
-        self.estimator = estimator
         self.dt = 1.0 / config.policy_hz
-        self.command = np.zeros(3) if command is None else np.asarray(command, float)
         self.reset(config.standing_pose)
 
     def reset(self, q_measured: np.ndarray) -> None:
         self.step = 0
         self.last_action = np.array(q_measured, dtype=float)
 
-    def __call__(self, state: RobotState) -> np.ndarray:
-        obs = self.builder.build(self.step * self.dt, self.command, state, self.estimator(), self.last_action)
+    def __call__(self, state: RobotState, base: BaseEstimate, command: np.ndarray) -> np.ndarray:
+        obs = self.builder.build(self.step * self.dt, command, state, base, self.last_action)
         a = self.policy(obs)
         self.last_action = a
         self.step += 1

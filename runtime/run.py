@@ -29,7 +29,7 @@ import numpy as np
 from bruce_hw.backend import Backend, BackendError, LifecycleState
 from bruce_hw.config import RobotConfig
 from bruce_hw.types import GroundTruth, JointCommand
-from runtime.estimation import GroundTruthEstimator, euler_of, tilt_angle, tilt_of
+from runtime.estimation import Estimator, euler_of, make_estimator, tilt_angle, tilt_of
 from runtime.inference import ModelError, OnnxPinn, OnnxPolicy
 from runtime.loopstats import LoopStats
 from runtime.mixing import TRANSFERS, eq8_torque, eq9_torque
@@ -160,14 +160,14 @@ class LogRelay:
             logger.handlers, logger.propagate, logger.level = handlers, propagate, level
 
 
-def build_controller(backend: Backend, config: RobotConfig, policy_path: Path | None):
+def build_controller(config: RobotConfig, policy_path: Path | None):
     """The nominal controller: the ONNX policy when one is given (or configured), else the standing controller."""
     path = policy_path or config.models.policy
     if path is None:
         return StandingController(config), "standing controller"
     policy = OnnxPolicy(path, ObservationBuilder(config).size, config.n_joints)
     policy.warmup()
-    return PolicyController(config, policy, GroundTruthEstimator(backend)), f"policy {path}"
+    return PolicyController(config, policy), f"policy {path}"
 
 
 def build_pinn(config: RobotConfig, transfer: str, pinn_path: Path | None) -> OnnxPinn | None:
@@ -185,9 +185,13 @@ def build_pinn(config: RobotConfig, transfer: str, pinn_path: Path | None) -> On
 
 def run_session(backend: Backend, config: RobotConfig, *, duration: float | None, realtime: bool,
                 stats_path: Path | None = None, transfer: str = "direct", policy: Path | None = None,
-                pinn: Path | None = None, rerun=None, controller=None) -> RunSummary:
+                pinn: Path | None = None, rerun=None, controller=None, estimator: str | Estimator | None = None,
+                commands=None) -> RunSummary:
     """Run one session. `rerun` is a `runtime.telemetry.RerunSink` (None: no telemetry); `controller`
-    replaces the configured nominal controller (anything with reset(q) and __call__(state) -> a)."""
+    replaces the configured nominal controller (anything with reset(q) and __call__(state, base, command) -> a);
+    `estimator` is an estimator kind (`runtime.estimation.ESTIMATORS`) or an `Estimator` (default: the truth
+    where the backend has one, else the kinematic estimator); `commands` has `at(t) -> (vx, vy, yaw rate)`
+    for t in seconds since activation (default: stand still)."""
     summary = RunSummary(backend=backend.name, realtime=realtime, transfer=transfer)
     stop = StopFlag()
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -201,8 +205,11 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         if backend.ground_truth() is not None:
             summary.truth = GroundTruthLog(nominal_base_height=backend.nominal_base_height)
         pinn_runner = build_pinn(config, transfer, pinn)
+        if estimator is None or isinstance(estimator, str):
+            kind = estimator or ("truth" if backend.ground_truth() is not None else "kinematic")
+            estimator = make_estimator(kind, backend, config)
         if controller is None:
-            controller, controller_name = build_controller(backend, config, policy)
+            controller, controller_name = build_controller(config, policy)
         else:
             controller_name = type(controller).__name__
         if rerun is not None:
@@ -215,6 +222,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
             grant = summary.realtime_grant = request_realtime()
         backend.activate()
         controller.reset(robot.joints.q)
+        estimator.reset(robot)
         if pinn_runner is not None:
             pinn_runner.reset()
         until = "until Ctrl-C" if duration is None else f"for {duration:g} s"
@@ -225,7 +233,8 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         gc.collect()
         gc.freeze()
         gc.disable()
-        _loop(backend, config, controller, pinn_runner, telemetry, summary, stop, duration, realtime)
+        _loop(backend, config, controller, estimator, commands, pinn_runner, telemetry, summary, stop, duration,
+              realtime)
         summary.final_state = backend.state.value
         if backend.state is LifecycleState.FAULT:
             summary.final_state = f"{backend.state.value}: damping"
@@ -259,8 +268,8 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
     return summary
 
 
-def _loop(backend: Backend, config: RobotConfig, controller, pinn, telemetry, summary: RunSummary,
-          stop: StopFlag, duration: float | None, realtime: bool) -> None:
+def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimator, commands, pinn, telemetry,
+          summary: RunSummary, stop: StopFlag, duration: float | None, realtime: bool) -> None:
     stats = summary.loop
     sections = stats.sections
     h_read, h_policy, h_pinn, h_mix = sections["read"], sections["policy"], sections["pinn"], sections["mixing"]
@@ -280,6 +289,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, pinn, telemetry, su
     pacer.start()
     tick, previous_start, late = 0, 0, False
     a = q_hat = qd_hat = None
+    standstill = np.zeros(3)
     while stop.cause is None and (n_ticks is None or tick < n_ticks):
         if realtime:
             behind = pacer.wait()
@@ -294,9 +304,11 @@ def _loop(backend: Backend, config: RobotConfig, controller, pinn, telemetry, su
         if safety.tripped:
             break
         q, qd = robot.joints.q, robot.joints.qd
+        estimator.update(robot)
         if tick % decimation == 0:
+            command = standstill if commands is None else commands.at(now - clock0)
             try:
-                a = controller(robot)
+                a = controller(robot, estimator.estimate(), command)
             except ModelError as exc:
                 safety.trip(str(exc))
                 break

@@ -20,7 +20,7 @@ import numpy as np
 
 from bruce_hw.config import RobotConfig
 from bruce_hw.types import ImuSample, RobotState
-from runtime.estimation import world_up_in_body
+from runtime.estimation import BaseEstimate, world_up_in_body
 
 COM_POSITION_GAIN = 2.0     # K_x, in units of the toppling stiffness m g (must exceed 1)
 COM_VELOCITY_GAIN = 0.3     # K_v, s
@@ -79,8 +79,9 @@ class StandingController:
         support = kin.site_xpos[self.support, :2].mean(axis=0)
         return kin.subtree_com[self.base][:2] - support
 
-    def __call__(self, state: RobotState) -> np.ndarray:
-        """a_t for this policy step."""
+    def __call__(self, state: RobotState, base: BaseEstimate | None = None, command: np.ndarray | None = None
+                 ) -> np.ndarray:
+        """a_t for this policy step (it stands still: the base estimate and the velocity command are unused)."""
         stand, q = self.config.standing_pose, state.joints.q
         s = min(1.0, self.step / self.ramp_steps)
         s = s * s * (3.0 - 2.0 * s)  # smoothstep: no jump in target velocity at either end

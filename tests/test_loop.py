@@ -100,9 +100,9 @@ def test_onnx_policy_drives_the_loop_at_the_policy_rate(config, random_policy_on
     calls = []
     original = PolicyController.__call__
 
-    def counting(self, state):
+    def counting(self, state, base, command):
         calls.append(state.joints.stamp)
-        return original(self, state)
+        return original(self, state, base, command)
 
     monkeypatch.setattr(PolicyController, "__call__", counting)
     summary = run_session(MujocoBackend(config), config, duration=0.5, realtime=False, policy=random_policy_onnx)

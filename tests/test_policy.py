@@ -16,8 +16,8 @@ def test_observation_follows_table_one(config):
     backend = MujocoBackend(config)
     backend.configure()
     state = backend.read()
-    base = BaseEstimate(linvel=np.array([0.1, 0.2, 0.3]), angvel=np.array([-1.0, 0.0, 1.0]),
-                        euler=np.array([0.01, 0.02, 0.03]))
+    base = BaseEstimate(quat=np.array([1.0, 0.0, 0.0, 0.0]), linvel=np.array([0.1, 0.2, 0.3]),
+                        angvel=np.array([-1.0, 0.0, 1.0]), euler=np.array([0.01, 0.02, 0.03]))
     t = 0.125 * config.models.gait_period_s
     obs = builder.build(t, np.array([0.4, 0.0, -0.5]), state, base, np.arange(10.0))
     s = builder.slices
@@ -41,7 +41,7 @@ def test_ground_truth_estimate_is_in_the_base_frame(config):
     backend = MujocoBackend(config)
     backend.configure()
     backend.data.qvel[0:3] = (0.3, 0.0, 0.0)
-    estimate = GroundTruthEstimator(backend)()
+    estimate = GroundTruthEstimator(backend).estimate()
     assert estimate.linvel[0] == pytest.approx(0.3)
 
 
