@@ -1,18 +1,27 @@
-"""`bruce-run`: run BRUCE's controller on a backend (`mock` by default is headless and needs no robot)."""
+"""`bruce-run`: run BRUCE's controller on a backend (`mock` by default is headless and needs no robot).
+
+The controller (--controller: the ONNX policy, the model-based walking teacher or the standing controller)
+follows a velocity command: --cmd VX,VY,WZ holds one, --scenario PATH plays a scenario file of timed segments
+(see configs/scenarios/); with neither it is asked to stand still. --estimator picks where the base state the
+controller sees comes from.
+"""
 
 from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 import sys
 from pathlib import Path
 
 from bruce_hw.backend import BACKENDS, BackendError, make_backend
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
+from runtime.commands import COMMAND_AXES, COMMAND_LIMITS, COMMAND_UNITS, CommandSchedule
+from runtime.estimation import ESTIMATORS
 from runtime.inference import ModelError
 from runtime.mixing import TRANSFERS
-from runtime.run import run_session
+from runtime.run import CONTROLLERS, run_session
 
 
 def positive_seconds(text: str) -> float:
@@ -20,6 +29,20 @@ def positive_seconds(text: str) -> float:
     if not value > 0:
         raise argparse.ArgumentTypeError(f"expected a duration > 0 s, got {text}")
     return value
+
+
+def constant_command(text: str) -> CommandSchedule:
+    """--cmd VX,VY,WZ: one velocity command, within COMMAND_LIMITS."""
+    try:
+        values = [float(part) for part in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != len(COMMAND_AXES) or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected VX,VY,WZ (three numbers: m/s, m/s, rad/s), got {text!r}")
+    try:
+        return CommandSchedule.constant(*values)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def default_rerun_sink() -> str:
@@ -38,14 +61,30 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override a config value by dotted key path, e.g. buses.bear.port=/dev/ttyUSB3 "
                         "(repeatable)")
     p.add_argument("--duration", type=positive_seconds, default=None, metavar="S",
-                   help="seconds of control to run (default: until Ctrl-C)")
+                   help="seconds of control to run (default: the scenario's length with --scenario, else until "
+                        "Ctrl-C)")
     p.add_argument("--realtime", action="store_true",
                    help="pace the loop to the wall clock (default for the mock: as fast as possible)")
     p.add_argument("--transfer", choices=TRANSFERS, default="direct",
                    help="direct: Eq. 8 torques alone; pinn: Eq. 9, tracking the PINN's prediction (default: direct)")
+    p.add_argument("--controller", choices=CONTROLLERS, default="policy",
+                   help="policy: the ONNX walking policy (--policy); teacher: the model-based walking controller; "
+                        "standing: the standing controller (default: %(default)s)")
     p.add_argument("--policy", type=Path, default=None, metavar="PATH",
-                   help="ONNX walking policy (obs -> action); default: policy.model in the config, else the "
-                        "standing controller")
+                   help="ONNX walking policy (obs -> action) for --controller policy; default: policy.model in "
+                        "the config, else the standing controller")
+    p.add_argument("--estimator", choices=ESTIMATORS, default=None,
+                   help="the base state the controller sees: truth: the simulator's (mock only); kinematic: IMU + "
+                        "leg kinematics + contacts (default: truth on the mock, kinematic otherwise)")
+    limits = ", ".join(f"{axis} [{low:g}, {high:g}] {unit}" for (axis, (low, high)), unit
+                       in zip(COMMAND_LIMITS.items(), COMMAND_UNITS, strict=True))
+    commands = p.add_mutually_exclusive_group()
+    commands.add_argument("--cmd", type=constant_command, default=None, metavar="VX,VY,WZ",
+                          help=f"hold one velocity command (base heading frame; {limits}), ramped up from 0; "
+                               "write --cmd=-0.3,0,0 when it starts with a minus (default: stand still)")
+    commands.add_argument("--scenario", type=Path, default=None, metavar="PATH",
+                          help="play a scenario YAML of timed velocity commands, e.g. "
+                               "configs/scenarios/walk_then_turn.yaml (the command is 0 after its end)")
     p.add_argument("--pinn", type=Path, default=None, metavar="PATH",
                    help="ONNX PINN for --transfer pinn; default: pinn.model in the config")
     p.add_argument("--rerun", default=None, metavar="SINK",
@@ -60,6 +99,8 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.policy is not None and args.controller != "policy":
+        parser.error(f"--policy is for --controller policy, not {args.controller}")
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
     try:
         sink = parse_sink(args.rerun or default_rerun_sink())
@@ -67,15 +108,20 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--rerun: {exc}")
     try:
         config = load_config(args.config, args.overrides)
+        commands = CommandSchedule.from_yaml(args.scenario) if args.scenario is not None else args.cmd
         backend = make_backend(args.backend, config)
     except (ConfigError, BackendError) as exc:
         print(f"bruce-run: {exc}", file=sys.stderr)
         return 2
     realtime = args.realtime or args.backend == "hw"  # a robot is always paced
+    duration = args.duration
+    if duration is None and args.scenario is not None:
+        duration = commands.duration
     try:
-        summary = run_session(backend, config, duration=args.duration, realtime=realtime, stats_path=args.stats,
+        summary = run_session(backend, config, duration=duration, realtime=realtime, stats_path=args.stats,
                               transfer=args.transfer, policy=args.policy, pinn=args.pinn,
-                              rerun=None if sink.kind == "off" else sink)
+                              rerun=None if sink.kind == "off" else sink, controller_kind=args.controller,
+                              estimator=args.estimator, commands=commands)
     except (BackendError, ModelError, TelemetryError) as exc:
         print(f"bruce-run: {exc}", file=sys.stderr)
         return 1

@@ -19,6 +19,7 @@ its graph):
 from __future__ import annotations
 
 import math
+
 import numpy as np
 
 from bruce_hw.config import RobotConfig

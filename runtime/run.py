@@ -5,9 +5,12 @@ sessions -> read the measured pose -> start telemetry -> ask for real-time sched
 A tick: read -> safety triggers -> policy (every `policy_decimation` ticks) -> Eq. 8 -> PINN -> Eq. 9 ->
 safety filter -> write -> telemetry. A trip of the safety stage (or SIGINT/SIGTERM) puts the backend into
 its damping state at once and holds it for `safety.damping_hold_s` while still reading; the end of
-`--duration` shuts the backend down (through damping). Every exit prints a summary and, with `--stats`,
-writes it as JSON. Garbage collection is frozen and disabled inside the loop: the loop's allocations are
-acyclic and freed by reference counting.
+`--duration` shuts the backend down (through damping). The nominal controller is the ONNX policy, the
+model-based walking teacher or the standing controller (`CONTROLLERS`); a command schedule
+(`runtime.commands`) gives it its velocity command on every policy tick. Every exit prints a summary and,
+with `--stats`, writes it as JSON; on the mock it includes the ground truth: height, fall, and how well the
+base velocity tracked the command. Garbage collection is frozen and disabled inside the loop: the loop's
+allocations are acyclic and freed by reference counting.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ import queue
 import signal
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from logging.handlers import QueueHandler, QueueListener
 from pathlib import Path
 
@@ -29,6 +32,7 @@ import numpy as np
 from bruce_hw.backend import Backend, BackendError, LifecycleState
 from bruce_hw.config import RobotConfig
 from bruce_hw.types import GroundTruth, JointCommand
+from runtime.commands import COMMAND_AXES
 from runtime.estimation import Estimator, euler_of, make_estimator, tilt_angle, tilt_of
 from runtime.inference import ModelError, OnnxPinn, OnnxPolicy
 from runtime.loopstats import LoopStats
@@ -44,6 +48,69 @@ FALL_TILT_RAD = math.pi / 4  # ... or the base is tilted more than this
 AT_REST_QD = 0.05            # rad/s: the damping hold ends early once every joint is this slow ...
 AT_REST_TICKS = 100          # ... for this many ticks in a row
 TRUTH_PHASE = 5              # the mock's truth log runs on this tick of each policy period, not with the policy
+TRACKING_SKIP_S = 2.0        # velocity tracking is scored after this start-up transient (soft start, first steps)
+CONTROLLERS = ("policy", "teacher", "standing")
+
+
+def heading_velocity(truth: GroundTruth) -> np.ndarray:
+    """(vx, vy, yaw rate) of the base: the linear velocity in the heading frame (yaw only), the world-z rate."""
+    w, x, y, z = truth.base_quat
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    c, s = math.cos(yaw), math.sin(yaw)
+    vx, vy, _ = truth.base_linvel
+    wx, wy, wz = truth.base_angvel  # base frame: the world z rate is the third row of R(quat) times it
+    yaw_rate = 2 * (x * z - w * y) * wx + 2 * (y * z + w * x) * wy + (1 - 2 * (x * x + y * y)) * wz
+    return np.array([c * vx + s * vy, c * vy - s * vx, yaw_rate])
+
+
+@dataclass
+class VelocityTracking:
+    """Running sums of the measured base velocity and the command in force, per axis (vx, vy, wz)."""
+
+    samples: int = 0
+    measured_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    command_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    squared_error_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def add(self, measured: np.ndarray, command: np.ndarray) -> None:
+        self.samples += 1
+        self.measured_sum += measured
+        self.command_sum += command
+        error = measured - command
+        self.squared_error_sum += error * error
+
+    def _per_axis(self, values: np.ndarray) -> dict[str, float] | None:
+        """(vx, vy, wz) by name; None before the first sample (the callers' max(samples, 1) only avoids 0 / 0)."""
+        return dict(zip(COMMAND_AXES, values.tolist(), strict=True)) if self.samples else None
+
+    @property
+    def measured_mean(self) -> dict[str, float] | None:
+        return self._per_axis(self.measured_sum / max(self.samples, 1))
+
+    @property
+    def command_mean(self) -> dict[str, float] | None:
+        return self._per_axis(self.command_sum / max(self.samples, 1))
+
+    @property
+    def error(self) -> dict[str, float] | None:
+        """|mean(v) - mean(cmd)|: a walking base sways within each step, so its mean is what tracks."""
+        return self._per_axis(np.abs(self.measured_sum - self.command_sum) / max(self.samples, 1))
+
+    @property
+    def rmse(self) -> dict[str, float] | None:
+        return self._per_axis(np.sqrt(self.squared_error_sum / max(self.samples, 1)))
+
+    def to_json(self) -> dict:
+        return {"tracking_samples": self.samples, "command_mean": self.command_mean,
+                "velocity_mean": self.measured_mean, "tracking_error": self.error, "tracking_rmse": self.rmse}
+
+    def text(self) -> str:
+        def triple(values: dict[str, float], sign: str = "") -> str:
+            return "/".join(f"{v:{sign}.3f}" for v in values.values())
+
+        return (f"  velocity after {TRACKING_SKIP_S:g} s (vx/vy m/s, wz rad/s, {self.samples} samples): command mean "
+                f"{triple(self.command_mean, '+')}, measured mean {triple(self.measured_mean, '+')}\n"
+                f"    tracking error |mean(v) - mean(cmd)| {triple(self.error)}, rmse {triple(self.rmse)}")
 
 
 @dataclass
@@ -58,6 +125,7 @@ class GroundTruthLog:
     base_yaw_end: float | None = None
     sim_time: float = 0.0
     fell: bool = False
+    tracking: VelocityTracking = field(default_factory=VelocityTracking)
 
     def update(self, truth: GroundTruth) -> None:
         z = float(truth.base_pos[2])
@@ -71,6 +139,27 @@ class GroundTruthLog:
         self.sim_time = truth.sim_time
         if z < FALL_HEIGHT_FRACTION * self.nominal_base_height or tilt_of(truth.base_quat) > FALL_TILT_RAD:
             self.fell = True
+
+    def track(self, truth: GroundTruth, elapsed: float, command: np.ndarray) -> None:
+        """Score the base velocity against the command in force, `elapsed` s after activation."""
+        if elapsed >= TRACKING_SKIP_S:
+            self.tracking.add(heading_velocity(truth), command)
+
+    @property
+    def tracking_error(self) -> dict[str, float] | None:
+        return self.tracking.error
+
+    @property
+    def tracking_rmse(self) -> dict[str, float] | None:
+        return self.tracking.rmse
+
+    def to_json(self) -> dict:
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "tracking"}
+        for key in ("base_height_min", "base_height_max"):
+            if not math.isfinite(out[key]):
+                out[key] = None
+        out.update(self.tracking.to_json())
+        return out
 
 
 @dataclass
@@ -96,10 +185,7 @@ class RunSummary:
         out.update(self.loop.to_json())
         out["realtime_grant"] = self.realtime_grant.to_json() if self.realtime_grant else None
         if self.truth is not None:
-            out.update(asdict(self.truth))
-            for key in ("base_height_min", "base_height_max"):
-                if not math.isfinite(out[key]):
-                    out[key] = None
+            out.update(self.truth.to_json())
         return out
 
     def text(self) -> str:
@@ -112,6 +198,8 @@ class RunSummary:
             if self.ticks:
                 lines.append(f"  base height {t.base_height_min:.3f}..{t.base_height_max:.3f} m "
                              f"(nominal {t.nominal_base_height:.3f} m), fell: {'yes' if t.fell else 'no'}")
+            if t.tracking.samples:
+                lines.append(t.tracking.text())
         lines.append(self.loop.text())
         if self.telemetry_dropped:
             lines.append(f"  telemetry: {self.telemetry_dropped} rows dropped (buffer full)")
@@ -160,9 +248,18 @@ class LogRelay:
             logger.handlers, logger.propagate, logger.level = handlers, propagate, level
 
 
-def build_controller(config: RobotConfig, policy_path: Path | None):
-    """The nominal controller: the ONNX policy when one is given (or configured), else the standing controller."""
-    path = policy_path or config.models.policy
+def build_controller(config: RobotConfig, policy_path: Path | None, kind: str = "policy"):
+    """The nominal controller and its name. `policy`: the ONNX policy given (or configured), else the standing
+    controller; `teacher`: the model-based walking controller; `standing`: the standing controller."""
+    if kind not in CONTROLLERS:
+        raise ValueError(f"unknown controller {kind!r} (expected one of {', '.join(CONTROLLERS)})")
+    if policy_path is not None and kind != "policy":
+        raise ValueError(f"a policy model ({policy_path}) is for the policy controller, not {kind!r}")
+    if kind == "teacher":
+        from runtime.walking.teacher import WalkingTeacher  # only runs that walk with it load its models
+
+        return WalkingTeacher(config), "walking teacher"
+    path = (policy_path or config.models.policy) if kind == "policy" else None
     if path is None:
         return StandingController(config), "standing controller"
     policy = OnnxPolicy(path, ObservationBuilder(config).size, config.n_joints)
@@ -185,13 +282,14 @@ def build_pinn(config: RobotConfig, transfer: str, pinn_path: Path | None) -> On
 
 def run_session(backend: Backend, config: RobotConfig, *, duration: float | None, realtime: bool,
                 stats_path: Path | None = None, transfer: str = "direct", policy: Path | None = None,
-                pinn: Path | None = None, rerun=None, controller=None, estimator: str | Estimator | None = None,
-                commands=None) -> RunSummary:
-    """Run one session. `rerun` is a `runtime.telemetry.RerunSink` (None: no telemetry); `controller`
-    replaces the configured nominal controller (anything with reset(q) and __call__(state, base, command) -> a);
-    `estimator` is an estimator kind (`runtime.estimation.ESTIMATORS`) or an `Estimator` (default: the truth
-    where the backend has one, else the kinematic estimator); `commands` has `at(t) -> (vx, vy, yaw rate)`
-    for t in seconds since activation (default: stand still)."""
+                pinn: Path | None = None, rerun=None, controller=None, controller_kind: str = "policy",
+                estimator: str | Estimator | None = None, commands=None) -> RunSummary:
+    """Run one session. `rerun` is a `runtime.telemetry.RerunSink` (None: no telemetry); `controller_kind` picks
+    the nominal controller (`build_controller`), and `controller` replaces it (anything with reset(q) and
+    __call__(state, base, command) -> a); `estimator` is an estimator kind (`runtime.estimation.ESTIMATORS`) or
+    an `Estimator` (default: the truth where the backend has one, else the kinematic estimator); `commands` has
+    `at(t) -> (vx, vy, yaw rate)` for t in seconds since activation, e.g. a `runtime.commands.CommandSchedule`
+    (default: stand still)."""
     summary = RunSummary(backend=backend.name, realtime=realtime, transfer=transfer)
     stop = StopFlag()
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -209,7 +307,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
             kind = estimator or ("truth" if backend.ground_truth() is not None else "kinematic")
             estimator = make_estimator(kind, backend, config)
         if controller is None:
-            controller, controller_name = build_controller(config, policy)
+            controller, controller_name = build_controller(config, policy, controller_kind)
         else:
             controller_name = type(controller).__name__
         if rerun is not None:
@@ -226,7 +324,8 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         if pinn_runner is not None:
             pinn_runner.reset()
         until = "until Ctrl-C" if duration is None else f"for {duration:g} s"
-        print(f"bruce-run: {backend.name} backend active, {controller_name}, transfer {transfer}, {until}"
+        commanded = "" if commands is None else f", {getattr(commands, 'name', type(commands).__name__)}"
+        print(f"bruce-run: {backend.name} backend active, {controller_name}{commanded}, transfer {transfer}, {until}"
               f"{' (paced to the wall clock)' if realtime else ''}", flush=True)
         if grant is not None:
             print(f"bruce-run: {grant.text()}", flush=True)
@@ -290,6 +389,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     tick, previous_start, late = 0, 0, False
     a = q_hat = qd_hat = None
     standstill = np.zeros(3)
+    command = standstill
     while stop.cause is None and (n_ticks is None or tick < n_ticks):
         if realtime:
             behind = pacer.wait()
@@ -342,7 +442,9 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
                 events_sent = len(safety.transitions)
         t8 = perf()
         if truth is not None and tick % decimation == TRUTH_PHASE:
-            truth.update(backend.ground_truth())  # evaluation only (in work, in no section): between policy ticks
+            ground_truth = backend.ground_truth()  # evaluation only (in work, in no section): between policy ticks
+            truth.update(ground_truth)
+            truth.track(ground_truth, now - clock0, command)
         h_read.add(t1 - t0)
         h_policy.add(t2 - t1)
         h_pinn.add(t4 - t3)

@@ -87,3 +87,81 @@ def test_saved_rrd_is_complete_after_ctrl_c(tmp_path):
                 "loop/work_us", "safety/state", "safety/events", "world/robot/base", "world/robot/r_foot",
                 "world/base_trajectory"}
     assert expected <= paths, expected - paths
+
+
+# -- velocity commands, controller and estimator choice -------------------------------------------------------
+def parse_error(argv, capsys) -> str:
+    from runtime.cli import build_parser
+
+    with pytest.raises(SystemExit) as exit_:
+        build_parser().parse_args(argv)
+    assert exit_.value.code == 2
+    return capsys.readouterr().err
+
+
+def test_cmd_is_a_constant_command():
+    from runtime.cli import build_parser
+
+    args = build_parser().parse_args(["--cmd", "0.4,0,0"])
+    assert args.cmd.duration == float("inf") and list(args.cmd.at(10.0)) == [0.4, 0.0, 0.0]
+    args = build_parser().parse_args(["--cmd=-0.3,0.1,-0.5"])  # a leading minus needs the = form
+    assert list(args.cmd.at(10.0)) == [-0.3, 0.1, -0.5]
+
+
+@pytest.mark.parametrize("text", ["0.4,0", "0.4,0,0,0", "fast,0,0", "0.4;0;0", "nan,0,0", ""])
+def test_cmd_format_errors(text, capsys):
+    assert f"expected VX,VY,WZ (three numbers: m/s, m/s, rad/s), got {text!r}" in parse_error(["--cmd", text], capsys)
+
+
+@pytest.mark.parametrize("text, problem", [
+    ("1.5,0,0", "vx = 1.5 m/s is outside the supported range [-0.5, 1] m/s"),
+    ("0,0.4,0", "vy = 0.4 m/s is outside the supported range [-0.3, 0.3] m/s"),
+    ("0,0,0.6", "wz = 0.6 rad/s is outside the supported range [-0.5, 0.5] rad/s"),
+])
+def test_cmd_out_of_range(text, problem, capsys):
+    assert problem in parse_error(["--cmd", text], capsys)
+
+
+def test_cmd_and_scenario_are_mutually_exclusive(capsys):
+    err = parse_error(["--cmd", "0.4,0,0", "--scenario", "configs/scenarios/walk_then_turn.yaml"], capsys)
+    assert "not allowed with argument" in err
+
+
+def test_policy_is_for_the_policy_controller_only(capsys):
+    with pytest.raises(SystemExit):
+        main(["--controller", "standing", "--policy", "policy.onnx"])
+    assert "--policy is for --controller policy, not standing" in capsys.readouterr().err
+
+
+def test_bad_scenario_is_named(tmp_path, capsys):
+    scenario = tmp_path / "scenario.yaml"
+    scenario.write_text("segments: [{duration: 1.0, cmd: [2.0, 0, 0]}]\n")
+    assert main(["--scenario", str(scenario)]) == 2
+    assert f"{scenario}: segments[0].cmd: vx = 2 m/s is outside" in capsys.readouterr().err
+
+
+def test_scenario_sets_the_duration_and_the_summary_has_the_tracking(tmp_path, capsys):
+    scenario, stats = tmp_path / "scenario.yaml", tmp_path / "stats.json"
+    scenario.write_text("segments:\n  - {duration: 1.0, cmd: [0.2, 0.0, 0.0]}\n  - {duration: 1.5, cmd: [0, 0, 0.1]}\n")
+    assert main(["--scenario", str(scenario), "--controller", "standing", "--estimator", "truth",
+                 "--stats", str(stats)]) == 0
+    data = json.loads(stats.read_text())
+    assert data["ticks"] == 2500 and data["stop_cause"] == "duration reached"
+    assert data["tracking_samples"] == 50
+    assert set(data["tracking_error"]) == set(data["tracking_rmse"]) == {"vx", "vy", "wz"}
+    assert data["command_mean"] == pytest.approx({"vx": 0.0, "vy": 0.0, "wz": 0.1})  # ramped before 2 s
+    out = capsys.readouterr().out
+    assert f"standing controller, scenario {scenario}, transfer direct, for 2.5 s" in out
+    assert "tracking error |mean(v) - mean(cmd)|" in out
+
+
+def test_controller_teacher_runs_the_walking_teacher(monkeypatch, capsys):
+    import types
+
+    from runtime.standing import StandingController
+
+    teacher = types.ModuleType("runtime.walking.teacher")
+    teacher.WalkingTeacher = StandingController  # the plumbing only: the real teacher has its own tests
+    monkeypatch.setitem(sys.modules, "runtime.walking.teacher", teacher)
+    assert main(["--controller", "teacher", "--cmd", "0.4,0,0", "--duration", "0.1"]) == 0
+    assert "walking teacher, constant command (0.4, 0, 0), transfer direct, for 0.1 s" in capsys.readouterr().out

@@ -1,0 +1,146 @@
+"""Velocity commands for the walking controllers: timed segments of (vx, vy, yaw rate), with linear ramps.
+
+A `CommandSchedule` is a constant command (`CommandSchedule.constant(vx, vy, wz)`, held for ever) or a
+scenario file (`CommandSchedule.from_yaml(path)`):
+
+    segments:                     # run one after the other; the command is 0 after the last
+      - {duration: 10.0, cmd: [0.4, 0.0, 0.0]}   # s; [vx m/s, vy m/s, yaw rate rad/s], base heading frame
+      - {duration: 5.0, cmd: [0.0, 0.0, 0.5]}
+    ramp_s: 0.5                   # optional (default 0.5): linear ramp from the command before (0 at the start)
+
+A ramp starts at its segment's start and is cut short by a segment shorter than it. Every command must lie in
+`COMMAND_LIMITS`, the range the walking controllers support. The schedule is precomputed as a piecewise-linear
+curve, so `at(t)` (called at the policy rate in the control loop) is a bisect and one interpolation.
+"""
+
+from __future__ import annotations
+
+import math
+from bisect import bisect_right
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from bruce_hw.config import ConfigError
+
+COMMAND_AXES = ("vx", "vy", "wz")
+COMMAND_UNITS = ("m/s", "m/s", "rad/s")
+COMMAND_LIMITS = {"vx": (-0.5, 1.0), "vy": (-0.3, 0.3), "wz": (-0.5, 0.5)}  # the walking controllers' range
+DEFAULT_RAMP_S = 0.5
+_SCENARIO_KEYS = {"segments", "ramp_s"}
+_SEGMENT_KEYS = {"duration", "cmd"}
+
+
+def limit_violation(cmd: Sequence[float]) -> str | None:
+    """What is out of `COMMAND_LIMITS` in a (vx, vy, wz) command, or None when it is in range."""
+    for axis, unit, value in zip(COMMAND_AXES, COMMAND_UNITS, cmd, strict=True):
+        low, high = COMMAND_LIMITS[axis]
+        if not low <= value <= high:
+            return f"{axis} = {value:g} {unit} is outside the supported range [{low:g}, {high:g}] {unit}"
+    return None
+
+
+class CommandSchedule:
+    """Velocity command (vx, vy, yaw rate) as a function of the time since activation."""
+
+    def __init__(self, segments: Sequence[tuple[float, Sequence[float]]], ramp_s: float = DEFAULT_RAMP_S,
+                 name: str = "command schedule"):
+        """`segments`: (duration s, (vx, vy, wz)) in order, already checked; the last may last for ever."""
+        self.name = name
+        self.duration = math.fsum(d for d, _ in segments)
+        if math.isfinite(self.duration):
+            segments = [*segments, (math.inf, (0.0, 0.0, 0.0))]  # stop (step in place) after the last segment
+        times, values = [0.0], [np.zeros(3)]
+        start, current = 0.0, np.zeros(3)
+        for duration, cmd in segments:
+            target = np.array(cmd, dtype=float)
+            ramp = min(ramp_s, duration)
+            reached = target if ramp >= ramp_s else current + (target - current) * (ramp / ramp_s)
+            times.append(start + ramp)
+            values.append(reached)
+            if ramp < duration < math.inf:
+                times.append(start + duration)
+                values.append(reached)
+            start, current = start + duration, reached
+        self._times = times
+        self._values = np.array(values)
+        spans = np.diff(times)
+        rises = np.diff(self._values, axis=0)
+        # Zero-length spans (no ramp) are never interpolated in: bisect_right steps past them.
+        self._slopes = np.divide(rises, spans[:, None], out=np.zeros_like(rises), where=spans[:, None] > 0)
+
+    @classmethod
+    def constant(cls, vx: float, vy: float, wz: float, ramp_s: float = DEFAULT_RAMP_S) -> CommandSchedule:
+        """One command for ever (ramped up from 0); ValueError when it is out of `COMMAND_LIMITS`."""
+        cmd = (float(vx), float(vy), float(wz))
+        problem = limit_violation(cmd)
+        if problem is not None:
+            raise ValueError(f"command {problem}")
+        return cls([(math.inf, cmd)], ramp_s, name=f"constant command ({vx:g}, {vy:g}, {wz:g})")
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> CommandSchedule:
+        """A scenario file; ConfigError naming the file, the segment and the problem when it is not usable."""
+        path = Path(path)
+        try:
+            tree = yaml.safe_load(path.read_text())
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read the scenario: {exc.strerror or exc}") from None
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+        if not isinstance(tree, dict):
+            raise ConfigError(f"{path}: <top>: expected a mapping with {sorted(_SCENARIO_KEYS)}, got {tree!r}")
+        _check_keys(path, "", tree, _SCENARIO_KEYS, required={"segments"})
+        ramp_s = _number(path, "ramp_s", tree.get("ramp_s", DEFAULT_RAMP_S), "a ramp time >= 0 s",
+                         lambda v: v >= 0)
+        raw_segments = tree["segments"]
+        if not isinstance(raw_segments, list) or not raw_segments:
+            raise ConfigError(f"{path}: segments: expected a non-empty list of {{duration, cmd}}, "
+                              f"got {raw_segments!r}")
+        return cls([_segment(path, i, raw) for i, raw in enumerate(raw_segments)], ramp_s,
+                   name=f"scenario {path}")
+
+    def at(self, t: float) -> np.ndarray:
+        """The command (vx, vy, wz) at t seconds since activation: 0 before 0 and after the schedule."""
+        i = bisect_right(self._times, t)
+        if i == 0:
+            return self._values[0].copy()
+        if i == len(self._times):
+            return self._values[-1].copy()
+        return self._values[i - 1] + self._slopes[i - 1] * (t - self._times[i - 1])
+
+
+def _segment(path: Path, index: int, raw) -> tuple[float, tuple[float, float, float]]:
+    where = f"segments[{index}]"
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: {where}: expected a mapping {{duration, cmd}}, got {raw!r}")
+    _check_keys(path, where + ".", raw, _SEGMENT_KEYS, required=_SEGMENT_KEYS)
+    duration = _number(path, f"{where}.duration", raw["duration"], "a duration > 0 s", lambda v: v > 0)
+    cmd = raw["cmd"]
+    if not isinstance(cmd, list) or len(cmd) != len(COMMAND_AXES):
+        raise ConfigError(f"{path}: {where}.cmd: expected [vx, vy, wz] (3 numbers), got {cmd!r}")
+    values = tuple(_number(path, f"{where}.cmd.{axis}", v, "a number")
+                   for axis, v in zip(COMMAND_AXES, cmd, strict=True))
+    problem = limit_violation(values)
+    if problem is not None:
+        raise ConfigError(f"{path}: {where}.cmd: {problem}")
+    return duration, values
+
+
+def _check_keys(path: Path, prefix: str, tree: dict, allowed: set[str], required: set[str]) -> None:
+    unknown = sorted(str(k) for k in tree.keys() - allowed)
+    if unknown:
+        raise ConfigError(f"{path}: {prefix}{unknown[0]}: unknown key (expected one of {sorted(allowed)})")
+    missing = sorted(required - tree.keys())
+    if missing:
+        raise ConfigError(f"{path}: {prefix}{missing[0]}: missing key")
+
+
+def _number(path: Path, key: str, value, expected: str, accept: Callable[[float], bool] | None = None) -> float:
+    """A finite int or float (YAML booleans are not numbers here) that `accept`, if given, approves."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) \
+            or (accept is not None and not accept(value)):
+        raise ConfigError(f"{path}: {key}: expected {expected}, got {value!r}")
+    return float(value)

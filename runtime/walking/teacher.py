@@ -1,0 +1,308 @@
+"""The model-based walking controller ("teacher"): DCM footstep planning, swing trajectories, analytic leg IK.
+
+It has the nominal controller's interface, a_t = teacher(state, base, command) at the policy rate, and the
+1 kHz Eq. 8 PD turns a_t into torques, exactly as for the learned policy it is distilled into.
+
+Each policy tick:
+1. Kinematics from the robot's own model: the joint angles and the estimated base orientation give the
+   ankles and the centre of mass relative to the base, in world-aligned axes.
+2. Gait timing is locked to the policy clock (`gait.gait_phase`): one start-up period shifting the weight onto
+   the right foot, then alternating steps of C_T / 2.
+3. Footstep: the divergent component of motion (DCM) xi = c + c'/omega of the linear inverted pendulum is
+   predicted to the end of the step, xi_T = p + (xi - p) e^(omega t_remaining) around the stance foot's
+   centre p, and the swing foot lands at xi_T - b, with b the DCM offset of a periodic gait at the
+   commanded velocity (Khadiv et al., TRO 2020). BRUCE's line feet have no ankle roll, so this is the only
+   lateral balance there is. With step-timing adaptation on, a step whose landing point would leave the
+   reachable region ends earlier (or later), within [T_min, T_max], where that keeps it reachable.
+4. Swing: minimum-jerk horizontal motion from lift-off to the landing point (re-planned every tick until
+   the last part of the swing), a height bump, the sole kept level in the world.
+5. Stance: the leg's IK target holds the base at the nominal height *upright*, so the joint PD corrects the
+   torso's attitude through the stance hip; yaw turns through the stance hip yaw at the commanded rate.
+6. The Eq. 8 gains are low (20 Nm/rad at the hips and knee, 2.5 at the ankle), so the stance leg's gravity
+   load (J^T m g) and the swing leg's velocity feed-forward are folded into a_t:
+   a = q_des + (tau_ff + Kd qd_des) / Kp.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from bruce_hw.config import RobotConfig
+from bruce_hw.types import RobotState
+from runtime.estimation import BaseEstimate
+from runtime.walking.gait import gait_phase, lipm_omega, min_jerk, swing_height
+from runtime.walking.leg_ik import SIDES, leg_geometry, leg_ik
+
+
+@dataclass(frozen=True)
+class TeacherParams:
+    standing_height: float = 0.400   # m, base origin above the stance ankle
+    com_height: float = 0.370        # m, CoM above the sole for the pendulum's omega
+    step_width: float = 0.140        # m, nominal lateral distance between the ankles
+    foot_centre: float = 0.0075      # m, middle of the toe/heel line ahead of the ankle
+    swing_apex: float = 0.040        # m, swing ankle height at mid-swing
+    swing_landing: float = -0.004    # m, the swing ends this far below the ground, so the foot lands
+    swing_horizontal_end: float = 0.85  # share of the swing by which the foot is over its landing point
+    replan_until: float = 0.80       # share of the swing after which the landing point is frozen
+    reach_forward: float = 0.22      # m, ankle ahead of / behind the stance ankle at most
+    width_min: float = 0.09          # m, lateral ankle distance at least (no crossing)
+    width_max: float = 0.26          # m, ... at most
+    start_shift: float = 0.75        # share of the way the CoM moves toward the first stance foot at start-up
+    rigid_com: bool = True
+    ankle_position_gain: float = 2.0  # ankle torque per m of CoM offset, in units of m g (must exceed 1)
+    ankle_velocity_gain: float = 0.3  # s
+    cop_gain: float = 2.0            # centre-of-pressure shift per m of DCM error (single stance)
+    cop_front: float = 0.015         # m ahead of the foot centre at most (the toe is 0.0425 ahead)
+    cop_back: float = 0.015          # m behind it at most (the heel is 0.0425 behind)
+    heading_lead_max: float = 0.3    # rad
+    velocity_integral_gain: float = 1.0  # 1/s, on the error of the base's velocity in the heading frame
+    velocity_bias_max: float = 0.3   # m/s
+    stance_stiffness_boost: float = 0.0
+    swing_stiffness_boost: float = 0.0
+    swing_ankle_boost: float = 2.0  # extra stance-leg stiffness (hips, knee) as a multiple of Eq. 8's Kp
+
+
+class WalkingTeacher:
+    def __init__(self, config: RobotConfig, params: TeacherParams | None = None):
+        self.config = config
+        self.params = p = params or TeacherParams()
+        self.dt = 1.0 / config.policy_hz
+        self.period = config.models.gait_period_s
+        self.step_time = 0.5 * self.period
+        self.model = mujoco.MjModel.from_xml_path(str(config.mjcf))
+        self.kin = mujoco.MjData(self.model)
+        self.kin.qpos[0:3] = 0.0  # positions come out relative to the base origin
+        names = config.joints
+        self.leg_joints = [np.array([names.index(f"{side}_{j}") for j in
+                                     ("hip_yaw", "hip_pitch", "hip_roll", "knee", "ankle")]) for side in SIDES]
+        self.qpos = np.array([self.model.jnt_qposadr[self.model.joint(n).id] for n in names])
+        self.dofs = np.array([self.model.jnt_dofadr[self.model.joint(n).id] for n in names])
+        self.geo = [leg_geometry(self.model, side) for side in SIDES]
+        self.feet = [self.model.body(f"{side}_foot").id for side in SIDES]
+        self.base = self.model.body("base").id
+        self.mass = float(self.model.body_subtreemass[self.base])
+        self.mg = self.mass * 9.81
+        self.omega = lipm_omega(p.com_height)
+        self.growth = math.exp(self.omega * self.step_time)  # e^(omega T)
+        self.kp, self.kd = config.eq8.kp, config.eq8.kd
+        self.jacp = np.zeros((3, self.model.nv))
+        self.jacr = np.zeros((3, self.model.nv))
+        self.gravity = np.zeros(self.model.nv)
+        self._kinematics(config.standing_pose, np.array([1.0, 0.0, 0.0, 0.0]))
+        self.com_standing = self.kin.subtree_com[self.base].copy()  # base frame
+        self.reset(config.standing_pose)
+
+    # -- state -------------------------------------------------------------------------------------------
+    def reset(self, q_measured: np.ndarray) -> None:
+        self.tick = 0
+        self.step_index = -2
+        self.liftoff = np.zeros(3)       # swing ankle at lift-off, relative to the stance ankle (world axes)
+        self.swing_yaw0 = 0.0
+        self.velocity_bias = [0.0, 0.0]
+        self.heading: float | None = None  # desired base yaw: the commanded yaw rate, integrated
+        self.landing = np.zeros(3)
+        self.start_offset = None
+
+    # -- kinematics --------------------------------------------------------------------------------------
+    def _kinematics(self, q: np.ndarray, quat: np.ndarray) -> None:
+        kin = self.kin
+        kin.qpos[3:7] = quat
+        kin.qpos[self.qpos] = q
+        mujoco.mj_kinematics(self.model, kin)
+        mujoco.mj_comPos(self.model, kin)
+        mujoco.mj_rne(self.model, kin, 0, self.gravity)  # at rest: the fixed-base gravity load of every joint
+
+    def _support_torque(self, leg: int, share: float, com: np.ndarray) -> np.ndarray:
+        """Joint torques of `leg` (hips and knee; the ankle is left to balance) that hold the robot's posture
+        while that foot carries `share` of its weight: the fixed-base gravity load of the leg's own links, minus
+        J^T of the ground wrench (share of m g up, and its moment about the ankle)."""
+        kin = self.kin
+        mujoco.mj_jacBody(self.model, kin, self.jacp, self.jacr, self.feet[leg])
+        cols = self.dofs[self.leg_joints[leg]]
+        force = share * self.mg
+        arm = com - kin.xpos[self.feet[leg]]
+        moment = (arm[1] * force, -arm[0] * force)  # (c - a) x (0, 0, F): no z component
+        tau = self.gravity[cols] - (force * self.jacp[2, cols] + moment[0] * self.jacr[0, cols]
+                                    + moment[1] * self.jacr[1, cols])
+        tau[4] = 0.0
+        return tau
+
+    # -- the controller ----------------------------------------------------------------------------------
+    def __call__(self, state: RobotState, base: BaseEstimate, command: np.ndarray) -> np.ndarray:
+        p = self.params
+        q = state.joints.q
+        t = self.tick * self.dt
+        self.tick += 1
+        self._kinematics(q, base.quat)
+        kin = self.kin
+        rot = kin.xmat[self.base].reshape(3, 3)  # base -> world-aligned axes
+        ankles = [kin.xpos[f].copy() for f in self.feet]  # relative to the base origin, world axes
+        if p.rigid_com:
+            # The pendulum's mass point rides with the torso where the CoM is when standing: the swing leg's own
+            # motion, which the real CoM follows, would otherwise feed back into its own landing point.
+            com = rot @ self.com_standing
+            com_velocity = rot @ base.linvel + np.cross(rot @ base.angvel, com)
+        else:
+            com = kin.subtree_com[self.base].copy()
+            com_velocity = rot @ base.linvel
+        yaw = float(base.euler[2])
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        vx, vy, wz = (float(c) for c in command)
+        # Velocity integral: model errors (pendulum vs multibody, foot, PD sag) bias the mean speed, so the
+        # footstep plan aims at the command plus the integrated error of the measured base velocity.
+        v_heading = (cy * (rot @ base.linvel)[0] + sy * (rot @ base.linvel)[1],
+                     -sy * (rot @ base.linvel)[0] + cy * (rot @ base.linvel)[1])
+        if t >= self.period:
+            for i, (cmd, meas) in enumerate(((vx, v_heading[0]), (vy, v_heading[1]))):
+                self.velocity_bias[i] = min(p.velocity_bias_max, max(-p.velocity_bias_max, self.velocity_bias[i]
+                                            + p.velocity_integral_gain * self.dt * (cmd - meas)))
+        vx += self.velocity_bias[0]
+        vy += self.velocity_bias[1]
+
+        phase = gait_phase(t, self.period)
+        if self.heading is None:
+            self.heading = yaw
+        self.heading += wz * self.dt
+        # The desired heading never leads the measured one by more than a bound: no wind-up after a slip.
+        lead = math.remainder(self.heading - yaw, math.tau)
+        if abs(lead) > p.heading_lead_max:
+            self.heading = yaw + math.copysign(p.heading_lead_max, lead)
+        q_des = np.empty(self.config.n_joints)
+        qd_des = np.zeros(self.config.n_joints)
+        tau_ff = np.zeros(self.config.n_joints)
+        ankle_torque = np.full(self.config.n_joints, np.nan)  # where set: the ankle is a torque source
+        stance_legs = (0, 1) if phase.starting else (phase.stance,)
+        if phase.starting:
+            # Both feet down: move the CoM toward the right foot, the first stance foot, so that the DCM is
+            # where a periodic gait has it when the left foot lifts.
+            mid = 0.5 * (ankles[0] + ankles[1])
+            side = np.array([-sy, cy, 0.0])  # heading frame's +y in world axes
+            inner = p.step_width / (1.0 + self.growth)
+            if self.start_offset is None:
+                self.start_offset = float((com - mid) @ side)
+            target_lateral = -(0.5 * p.step_width - inner) * p.start_shift
+            blend, _ = min_jerk(t / (self.period - 2 * self.dt))
+            lateral = self.start_offset + blend * (target_lateral - self.start_offset)
+            forward = np.array([cy, sy, 0.0])
+            shift = ((com - mid) @ side - lateral) * side
+            right_share = min(1.0, max(0.0, 0.5 - ((com - mid) @ side) / p.step_width))
+            for leg in (0, 1):
+                target = ankles[leg] + shift
+                target[2] = -p.standing_height
+                q_des[self.leg_joints[leg]] = self._stance_ik(leg, target, yaw, float(q[self.leg_joints[leg][0]]))
+                share = right_share if leg == 0 else 1.0 - right_share
+                tau_ff[self.leg_joints[leg]] = self._support_torque(leg, share, com)
+            # Sagittal balance on two line feet: the ankles, as torque sources, keep the CoM over the feet.
+            ahead = (com - mid) @ forward - p.foot_centre
+            tau_ankle = -0.5 * self.mg * (p.ankle_position_gain * ahead
+                                          + p.ankle_velocity_gain * com_velocity @ forward)
+            ankle_torque[[self.leg_joints[0][4], self.leg_joints[1][4]]] = tau_ankle
+        else:
+            stance, swing = phase.stance, 1 - phase.stance
+            if phase.step != self.step_index:
+                self.step_index = phase.step
+                self.liftoff = ankles[swing] - ankles[stance]
+                self.swing_yaw0 = float(q[self.leg_joints[swing][0]])
+            tau_s = phase.t_in_step / self.step_time
+            # Stance: hold the base upright at the nominal height above the stance ankle; turn at wz.
+            target = ankles[stance].copy()
+            target[2] = -p.standing_height
+            # The stance foot is fixed in the world, so turning it by the heading error turns the base back.
+            stance_yaw = float(q[self.leg_joints[stance][0]]) + math.remainder(yaw - self.heading, math.tau)
+            q_des[self.leg_joints[stance]] = self._stance_ik(stance, target, yaw, stance_yaw)
+            tau_ff[self.leg_joints[stance]] = self._support_torque(stance, 1.0, com)
+            tau_ff[self.leg_joints[swing]] = self.gravity[self.dofs[self.leg_joints[swing]]]
+            qd_des[self.leg_joints[stance][0]] = -wz
+            # Ankle strategy: the stance ankle, as a torque source, moves the centre of pressure within the foot
+            # ahead of (behind) the foot centre when the DCM runs ahead of (behind) a periodic gait's.
+            forward = np.array([cy, sy, 0.0])
+            centre = ankles[stance] + p.foot_centre * forward
+            xi = (com + com_velocity / self.omega - centre) @ forward
+            xi_nominal = vx * self.step_time / (self.growth - 1.0) * math.exp(self.omega * phase.t_in_step)
+            cop = min(p.cop_front, max(-p.cop_back, p.cop_gain * (xi - xi_nominal)))
+            ankle_torque[self.leg_joints[stance][4]] = -self.mg * (cop + p.foot_centre)
+            # Footstep from the DCM.
+            if tau_s <= p.replan_until:
+                self.landing = self._landing(ankles[stance], com, com_velocity, yaw, phase.t_remaining,
+                                             swing, vx, vy, wz)
+            # Swing trajectory relative to the stance ankle, then into the base frame at the measured attitude.
+            # Land turned by half a step's turn ahead of the heading, so the stance foot turns symmetrically.
+            swing_yaw_end = math.remainder(self.heading + wz * (phase.t_remaining + 0.5 * self.step_time) - yaw,
+                                           math.tau)
+            rel, rel_rate = self._swing_point(tau_s)
+            target = ankles[stance] + rel
+            yaw_blend, dyaw = min_jerk(tau_s)
+            swing_yaw = self.swing_yaw0 + yaw_blend * (swing_yaw_end - self.swing_yaw0)
+            q_sw = self._swing_ik(swing, rot, target, yaw, swing_yaw)
+            ahead = self._swing_ik(swing, rot, target + rel_rate * 1e-3, yaw, swing_yaw)
+            q_des[self.leg_joints[swing]] = q_sw
+            qd_des[self.leg_joints[swing]] = (np.array(ahead) - q_sw) / 1e-3
+            qd_des[self.leg_joints[swing][0]] = dyaw * (swing_yaw_end - self.swing_yaw0) / self.step_time
+        # Stance joints get extra stiffness on top of Eq. 8's: a further Kp * boost * (q_des - q) through a_t.
+        boost = np.zeros(self.config.n_joints)
+        for leg in (0, 1):
+            if leg in stance_legs:
+                boost[self.leg_joints[leg][:4]] = p.stance_stiffness_boost
+            else:
+                boost[self.leg_joints[leg][:4]] = p.swing_stiffness_boost
+                boost[self.leg_joints[leg][4]] = p.swing_ankle_boost
+        a = q_des + boost * (q_des - q) + (tau_ff + self.kd * qd_des) / self.kp
+        torque_source = ~np.isnan(ankle_torque)
+        a[torque_source] = q[torque_source] + (ankle_torque[torque_source] + self.kd[torque_source]
+                                               * state.joints.qd[torque_source]) / self.kp[torque_source]
+        return a
+
+    def _landing(self, stance_ankle, com, com_velocity, yaw, t_remaining, swing, vx, vy, wz) -> np.ndarray:
+        """Swing ankle landing point relative to the stance ankle (world axes, z = 0: flat ground)."""
+        p = self.params
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        centre = stance_ankle + p.foot_centre * np.array([cy, sy, 0.0])
+        xi = com[:2] + com_velocity[:2] / self.omega
+        xi_end = centre[:2] + (xi - centre[:2]) * math.exp(self.omega * t_remaining)
+        e = self.growth
+        sign = 1.0 if swing == 1 else -1.0  # the left foot lands on the left
+        T = self.step_time
+        bx = vx * T / (e - 1.0)
+        by = -sign * p.step_width / (1.0 + e) + vy * T / (e - 1.0)
+        heading = yaw + wz * t_remaining
+        ch, sh = math.cos(heading), math.sin(heading)
+        land = xi_end - np.array([ch * bx - sh * by, sh * bx + ch * by]) - p.foot_centre * np.array([ch, sh])
+        rel = land - stance_ankle[:2]
+        # Reachability, in the landing heading: forward and lateral bounds around the stance ankle.
+        fwd = ch * rel[0] + sh * rel[1]
+        lat = -sh * rel[0] + ch * rel[1]
+        fwd = min(p.reach_forward, max(-p.reach_forward, fwd))
+        lat = sign * min(p.width_max, max(p.width_min, sign * lat))
+        return np.array([ch * fwd - sh * lat, sh * fwd + ch * lat, 0.0])
+
+    def _swing_point(self, s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Swing ankle relative to the stance ankle at swing share s, and its rate (per second)."""
+        p = self.params
+        T = self.step_time
+        h, dh = min_jerk(s / p.swing_horizontal_end)
+        dh /= p.swing_horizontal_end
+        z, dz = swing_height(s, p.swing_apex, p.swing_landing)
+        rel = self.liftoff + h * (self.landing - self.liftoff)
+        rel[2] = self.liftoff[2] * (1.0 - h) + z
+        rate = dh * (self.landing - self.liftoff) / T
+        rate[2] = (-self.liftoff[2] * dh + dz) / T
+        return rel, rate
+
+    def _stance_ik(self, leg: int, target_world, yaw: float, hip_yaw: float):
+        """IK for a stance ankle target given relative to the base in world axes, for an upright base with the
+        measured heading: the joint PD then rights the torso."""
+        c, s = math.cos(yaw), math.sin(yaw)
+        x, y, z = target_world
+        return leg_ik(self.geo[leg], (c * x + s * y, -s * x + c * y, z), hip_yaw, 0.0)
+
+    def _swing_ik(self, leg: int, rot: np.ndarray, target_world, yaw: float, hip_yaw: float):
+        """IK for a swing ankle target given relative to the base in world axes, at the measured attitude, with
+        the sole level in the world."""
+        local = rot.T @ target_world
+        heading = yaw + hip_yaw
+        slope = rot[0, 2] * math.cos(heading) + rot[1, 2] * math.sin(heading)
+        return leg_ik(self.geo[leg], (float(local[0]), float(local[1]), float(local[2])), hip_yaw, slope)

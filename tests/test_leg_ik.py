@@ -1,0 +1,72 @@
+import math
+
+import mujoco
+import numpy as np
+import pytest
+
+from bruce_hw.config import load_config
+from runtime.walking.gait import gait_phase, min_jerk, swing_height
+from runtime.walking.leg_ik import SIDES, leg_fk, leg_geometry, leg_ik
+
+
+@pytest.fixture(scope="module")
+def model():
+    return mujoco.MjModel.from_xml_path(str(load_config().mjcf))
+
+
+@pytest.mark.parametrize("side", SIDES)
+def test_ik_inverts_the_models_forward_kinematics(model, side):
+    """Random leg poses (sole within 0.6 rad of level): MuJoCo's ankle position and sole slope -> IK -> the pose."""
+    data = mujoco.MjData(model)
+    geo = leg_geometry(model, side)
+    adr = model.jnt_qposadr[model.joint(f"{side}_hip_yaw").id]
+    foot = model.body(f"{side}_foot").id
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        joints = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 1.2), rng.uniform(-0.4, 0.4),
+                           rng.uniform(-2.0, -0.2), 0.0])
+        joints[4] = -(joints[1] + joints[3]) + rng.uniform(-0.6, 0.6)
+        data.qpos[:] = 0.0
+        data.qpos[3] = 1.0
+        data.qpos[adr:adr + 5] = joints
+        mujoco.mj_kinematics(model, data)
+        ankle = data.xpos[foot]
+        np.testing.assert_allclose(leg_fk(geo, joints), ankle, atol=1e-9)
+        slope = data.xmat[foot].reshape(3, 3)[2, 0]  # z of the sole's forward axis
+        np.testing.assert_allclose(leg_ik(geo, tuple(ankle), joints[0], slope), joints, atol=1e-7)
+
+
+def test_ik_of_the_standing_pose_matches_the_config(model, config):
+    geo = leg_geometry(model, "r")
+    stand = config.standing_pose[:5]
+    ankle = leg_fk(geo, stand)
+    np.testing.assert_allclose(leg_ik(geo, tuple(ankle), stand[0], 0.0)[1:4], stand[1:4], atol=1e-3)
+
+
+def test_out_of_reach_targets_straighten_the_leg_toward_them(model):
+    geo = leg_geometry(model, "l")
+    far = (geo.hip[0] + 0.1, geo.hip[1], geo.hip[2] - 1.0)
+    joints = leg_ik(geo, far, 0.0, 0.0)
+    assert all(math.isfinite(j) for j in joints)
+    assert joints[3] == pytest.approx(0.0, abs=0.1)  # knee nearly straight
+    reached = leg_fk(geo, joints) - np.array(geo.hip)
+    direction = np.subtract(far, geo.hip)
+    cos = reached @ direction / np.linalg.norm(reached) / np.linalg.norm(direction)
+    assert cos > 0.999
+
+
+def test_gait_phase_alternates_steps_after_one_start_up_period():
+    period = 0.4
+    assert gait_phase(0.1, period).starting
+    first = gait_phase(period + 0.01, period)
+    second = gait_phase(period + 0.5 * period + 0.01, period)
+    assert (first.step, first.stance) == (0, 0) and (second.step, second.stance) == (1, 1)
+    assert first.t_in_step + first.t_remaining == pytest.approx(0.5 * period)
+
+
+def test_swing_profiles_start_and_end_at_rest():
+    for s in (0.0, 1.0):
+        assert min_jerk(s)[1] == pytest.approx(0.0)
+        assert swing_height(s, 0.04, -0.004)[1] == pytest.approx(0.0)
+    assert swing_height(0.5, 0.04, 0.0)[0] == pytest.approx(0.04)
+    assert swing_height(1.0, 0.04, -0.004)[0] == pytest.approx(-0.004)
