@@ -11,9 +11,9 @@ Each policy tick:
 3. Footstep: the divergent component of motion (DCM) xi = c + c'/omega of the linear inverted pendulum is
    predicted to the end of the step, xi_T = p + (xi - p) e^(omega t_remaining) around the stance foot's
    centre p, and the swing foot lands at xi_T - b, with b the DCM offset of a periodic gait at the
-   commanded velocity (Khadiv et al., TRO 2020). BRUCE's line feet have no ankle roll, so this is the only
-   lateral balance there is. With step-timing adaptation on, a step whose landing point would leave the
-   reachable region ends earlier (or later), within [T_min, T_max], where that keeps it reachable.
+   commanded velocity (Khadiv et al., TRO 2020), with a fixed step time (step-timing adaptation is not built
+   yet). BRUCE's line feet have no ankle roll, so this is the only lateral balance there is; the stance ankle
+   adds a little sagittal balance by moving the centre of pressure within the foot.
 4. Swing: minimum-jerk horizontal motion from lift-off to the landing point (re-planned every tick until
    the last part of the swing), a height bump, the sole kept level in the world.
 5. Stance: the leg's IK target holds the base at the nominal height *upright*, so the joint PD corrects the
@@ -42,9 +42,9 @@ from runtime.walking.leg_ik import SIDES, leg_geometry, leg_ik
 class TeacherParams:
     standing_height: float = 0.400   # m, base origin above the stance ankle
     com_height: float = 0.370        # m, CoM above the sole for the pendulum's omega
-    step_width: float = 0.140        # m, nominal lateral distance between the ankles
+    step_width: float = 0.110        # m, nominal lateral distance between the ankles
     foot_centre: float = 0.0075      # m, middle of the toe/heel line ahead of the ankle
-    swing_apex: float = 0.040        # m, swing ankle height at mid-swing
+    swing_apex: float = 0.025        # m, swing ankle height at mid-swing
     swing_landing: float = -0.004    # m, the swing ends this far below the ground, so the foot lands
     swing_horizontal_end: float = 0.85  # share of the swing by which the foot is over its landing point
     replan_until: float = 0.80       # share of the swing after which the landing point is frozen
@@ -52,18 +52,20 @@ class TeacherParams:
     width_min: float = 0.09          # m, lateral ankle distance at least (no crossing)
     width_max: float = 0.26          # m, ... at most
     start_shift: float = 0.75        # share of the way the CoM moves toward the first stance foot at start-up
-    rigid_com: bool = True
     ankle_position_gain: float = 2.0  # ankle torque per m of CoM offset, in units of m g (must exceed 1)
     ankle_velocity_gain: float = 0.3  # s
     cop_gain: float = 2.0            # centre-of-pressure shift per m of DCM error (single stance)
     cop_front: float = 0.015         # m ahead of the foot centre at most (the toe is 0.0425 ahead)
     cop_back: float = 0.015          # m behind it at most (the heel is 0.0425 behind)
-    heading_lead_max: float = 0.3    # rad
-    velocity_integral_gain: float = 1.0  # 1/s, on the error of the base's velocity in the heading frame
+    heading_lead_max: float = 0.3    # rad, how far the desired heading may lead the measured one
+    command_acceleration: tuple[float, float, float] = (0.5, 0.5, 1.0)  # m/s^2, m/s^2, rad/s^2
+    velocity_integral_gain: float = 0.3  # 1/s, on the error of the base's velocity in the heading frame
     velocity_bias_max: float = 0.3   # m/s
-    stance_stiffness_boost: float = 0.0
-    swing_stiffness_boost: float = 0.0
-    swing_ankle_boost: float = 2.0  # extra stance-leg stiffness (hips, knee) as a multiple of Eq. 8's Kp
+    # Extra stiffness, as a multiple of Eq. 8's Kp, added through a_t (a sampled 100 Hz loop around the 1 kHz PD):
+    stance_stiffness_boost: float = 0.5  # stance hips and knee
+    swing_stiffness_boost: float = 0.25  # swing hips and knee
+    swing_ankle_boost: float = 1.0       # swing ankle: Eq. 8's ankle (2.5 Nm/rad, 0.35 Nm s/rad) is too slow to
+                                         # level the foot before it lands
 
 
 class WalkingTeacher:
@@ -92,8 +94,6 @@ class WalkingTeacher:
         self.jacp = np.zeros((3, self.model.nv))
         self.jacr = np.zeros((3, self.model.nv))
         self.gravity = np.zeros(self.model.nv)
-        self._kinematics(config.standing_pose, np.array([1.0, 0.0, 0.0, 0.0]))
-        self.com_standing = self.kin.subtree_com[self.base].copy()  # base frame
         self.reset(config.standing_pose)
 
     # -- state -------------------------------------------------------------------------------------------
@@ -103,6 +103,7 @@ class WalkingTeacher:
         self.liftoff = np.zeros(3)       # swing ankle at lift-off, relative to the stance ankle (world axes)
         self.swing_yaw0 = 0.0
         self.velocity_bias = [0.0, 0.0]
+        self.command = [0.0, 0.0, 0.0]  # the command being followed (vx, vy, wz), rate-limited
         self.heading: float | None = None  # desired base yaw: the commanded yaw rate, integrated
         self.landing = np.zeros(3)
         self.start_offset = None
@@ -141,21 +142,21 @@ class WalkingTeacher:
         kin = self.kin
         rot = kin.xmat[self.base].reshape(3, 3)  # base -> world-aligned axes
         ankles = [kin.xpos[f].copy() for f in self.feet]  # relative to the base origin, world axes
-        if p.rigid_com:
-            # The pendulum's mass point rides with the torso where the CoM is when standing: the swing leg's own
-            # motion, which the real CoM follows, would otherwise feed back into its own landing point.
-            com = rot @ self.com_standing
-            com_velocity = rot @ base.linvel + np.cross(rot @ base.angvel, com)
-        else:
-            com = kin.subtree_com[self.base].copy()
-            com_velocity = rot @ base.linvel
+        com = kin.subtree_com[self.base].copy()
+        # The base's velocity stands for the CoM's: counting the swing leg's own motion would feed it back into
+        # its own landing point.
+        com_velocity = rot @ base.linvel
         yaw = float(base.euler[2])
         cy, sy = math.cos(yaw), math.sin(yaw)
-        vx, vy, wz = (float(c) for c in command)
+        # The command is followed at a bounded acceleration: a step change would ask for a step change of the
+        # footstep offsets, which the pendulum cannot follow within one step.
+        for i in range(3):
+            limit = p.command_acceleration[i] * self.dt
+            self.command[i] += min(limit, max(-limit, float(command[i]) - self.command[i]))
+        vx, vy, wz = self.command
         # Velocity integral: model errors (pendulum vs multibody, foot, PD sag) bias the mean speed, so the
         # footstep plan aims at the command plus the integrated error of the measured base velocity.
-        v_heading = (cy * (rot @ base.linvel)[0] + sy * (rot @ base.linvel)[1],
-                     -sy * (rot @ base.linvel)[0] + cy * (rot @ base.linvel)[1])
+        v_heading = (cy * com_velocity[0] + sy * com_velocity[1], -sy * com_velocity[0] + cy * com_velocity[1])
         if t >= self.period:
             for i, (cmd, meas) in enumerate(((vx, v_heading[0]), (vy, v_heading[1]))):
                 self.velocity_bias[i] = min(p.velocity_bias_max, max(-p.velocity_bias_max, self.velocity_bias[i]
