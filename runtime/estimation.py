@@ -94,7 +94,7 @@ class GroundTruthEstimator:
     def __init__(self, backend: Backend):
         if backend.ground_truth() is None:
             raise BackendError(f"{backend.name} backend: no ground truth, and the policy needs the base velocity; "
-                             "only the mock can run an ONNX policy until an IMU + kinematics estimator exists")
+                             "use the kinematic estimator (IMU + leg kinematics) instead")
         self.backend = backend
 
     def reset(self, state: RobotState) -> None:

@@ -55,7 +55,7 @@ CONTROLLERS = ("policy", "teacher", "standing")
 def heading_velocity(truth: GroundTruth) -> np.ndarray:
     """(vx, vy, yaw rate) of the base: the linear velocity in the heading frame (yaw only), the world-z rate."""
     w, x, y, z = truth.base_quat
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    yaw = float(euler_of(truth.base_quat)[2])
     c, s = math.cos(yaw), math.sin(yaw)
     vx, vy, _ = truth.base_linvel
     wx, wy, wz = truth.base_angvel  # base frame: the world z rate is the third row of R(quat) times it

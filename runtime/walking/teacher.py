@@ -94,6 +94,8 @@ class WalkingTeacher:
         self.jacp = np.zeros((3, self.model.nv))
         self.jacr = np.zeros((3, self.model.nv))
         self.gravity = np.zeros(self.model.nv)
+        # Extra stiffness per joint, for both feet down (start-up) and for each stance leg.
+        self.boost = {stance_legs: self._boost(stance_legs) for stance_legs in ((0, 1), (0,), (1,))}
         self.reset(config.standing_pose)
 
     # -- state -------------------------------------------------------------------------------------------
@@ -107,6 +109,17 @@ class WalkingTeacher:
         self.heading: float | None = None  # desired base yaw: the commanded yaw rate, integrated
         self.landing = np.zeros(3)
         self.start_offset = None
+
+    def _boost(self, stance_legs: tuple[int, ...]) -> np.ndarray:
+        p = self.params
+        boost = np.zeros(self.config.n_joints)
+        for leg in (0, 1):
+            if leg in stance_legs:
+                boost[self.leg_joints[leg][:4]] = p.stance_stiffness_boost
+            else:
+                boost[self.leg_joints[leg][:4]] = p.swing_stiffness_boost
+                boost[self.leg_joints[leg][4]] = p.swing_ankle_boost
+        return boost
 
     # -- kinematics --------------------------------------------------------------------------------------
     def _kinematics(self, q: np.ndarray, quat: np.ndarray) -> None:
@@ -148,6 +161,8 @@ class WalkingTeacher:
         com_velocity = rot @ base.linvel
         yaw = float(base.euler[2])
         cy, sy = math.cos(yaw), math.sin(yaw)
+        forward = np.array([cy, sy, 0.0])  # the heading frame's axes in world axes
+        side = np.array([-sy, cy, 0.0])
         # The command is followed at a bounded acceleration: a step change would ask for a step change of the
         # footstep offsets, which the pendulum cannot follow within one step.
         for i in range(3):
@@ -180,17 +195,15 @@ class WalkingTeacher:
         if phase.starting:
             # Both feet down: move the CoM toward the right foot, the first stance foot, so that the DCM is
             # where a periodic gait has it when the left foot lifts.
-            mid = 0.5 * (ankles[0] + ankles[1])
-            side = np.array([-sy, cy, 0.0])  # heading frame's +y in world axes
+            offset = com - 0.5 * (ankles[0] + ankles[1])  # from the middle of the feet
             inner = p.step_width / (1.0 + self.growth)
             if self.start_offset is None:
-                self.start_offset = float((com - mid) @ side)
+                self.start_offset = float(offset @ side)
             target_lateral = -(0.5 * p.step_width - inner) * p.start_shift
             blend, _ = min_jerk(t / (self.period - 2 * self.dt))
             lateral = self.start_offset + blend * (target_lateral - self.start_offset)
-            forward = np.array([cy, sy, 0.0])
-            shift = ((com - mid) @ side - lateral) * side
-            right_share = min(1.0, max(0.0, 0.5 - ((com - mid) @ side) / p.step_width))
+            shift = (offset @ side - lateral) * side
+            right_share = min(1.0, max(0.0, 0.5 - (offset @ side) / p.step_width))
             for leg in (0, 1):
                 target = ankles[leg] + shift
                 target[2] = -p.standing_height
@@ -198,7 +211,7 @@ class WalkingTeacher:
                 share = right_share if leg == 0 else 1.0 - right_share
                 tau_ff[self.leg_joints[leg]] = self._support_torque(leg, share, com)
             # Sagittal balance on two line feet: the ankles, as torque sources, keep the CoM over the feet.
-            ahead = (com - mid) @ forward - p.foot_centre
+            ahead = offset @ forward - p.foot_centre
             tau_ankle = -0.5 * self.mg * (p.ankle_position_gain * ahead
                                           + p.ankle_velocity_gain * com_velocity @ forward)
             ankle_torque[[self.leg_joints[0][4], self.leg_joints[1][4]]] = tau_ankle
@@ -220,16 +233,15 @@ class WalkingTeacher:
             qd_des[self.leg_joints[stance][0]] = -wz
             # Ankle strategy: the stance ankle, as a torque source, moves the centre of pressure within the foot
             # ahead of (behind) the foot centre when the DCM runs ahead of (behind) a periodic gait's.
-            forward = np.array([cy, sy, 0.0])
             centre = ankles[stance] + p.foot_centre * forward
-            xi = (com + com_velocity / self.omega - centre) @ forward
+            dcm = com + com_velocity / self.omega
+            xi = (dcm - centre) @ forward
             xi_nominal = vx * self.step_time / (self.growth - 1.0) * math.exp(self.omega * phase.t_in_step)
             cop = min(p.cop_front, max(-p.cop_back, p.cop_gain * (xi - xi_nominal)))
             ankle_torque[self.leg_joints[stance][4]] = -self.mg * (cop + p.foot_centre)
             # Footstep from the DCM.
             if tau_s <= p.replan_until:
-                self.landing = self._landing(ankles[stance], com, com_velocity, yaw, phase.t_remaining,
-                                             swing, vx, vy, wz)
+                self.landing = self._landing(ankles[stance], centre, dcm, yaw, phase.t_remaining, swing, vx, vy, wz)
             # Swing trajectory relative to the stance ankle, then into the base frame at the measured attitude.
             # Land turned by half a step's turn ahead of the heading, so the stance foot turns symmetrically.
             swing_yaw_end = math.remainder(self.heading + wz * (phase.t_remaining + 0.5 * self.step_time) - yaw,
@@ -243,27 +255,18 @@ class WalkingTeacher:
             q_des[self.leg_joints[swing]] = q_sw
             qd_des[self.leg_joints[swing]] = (np.array(ahead) - q_sw) / 1e-3
             qd_des[self.leg_joints[swing][0]] = dyaw * (swing_yaw_end - self.swing_yaw0) / self.step_time
-        # Stance joints get extra stiffness on top of Eq. 8's: a further Kp * boost * (q_des - q) through a_t.
-        boost = np.zeros(self.config.n_joints)
-        for leg in (0, 1):
-            if leg in stance_legs:
-                boost[self.leg_joints[leg][:4]] = p.stance_stiffness_boost
-            else:
-                boost[self.leg_joints[leg][:4]] = p.swing_stiffness_boost
-                boost[self.leg_joints[leg][4]] = p.swing_ankle_boost
-        a = q_des + boost * (q_des - q) + (tau_ff + self.kd * qd_des) / self.kp
+        # Extra stiffness on top of Eq. 8's: a further Kp * boost * (q_des - q) through a_t.
+        a = q_des + self.boost[stance_legs] * (q_des - q) + (tau_ff + self.kd * qd_des) / self.kp
         torque_source = ~np.isnan(ankle_torque)
         a[torque_source] = q[torque_source] + (ankle_torque[torque_source] + self.kd[torque_source]
                                                * state.joints.qd[torque_source]) / self.kp[torque_source]
         return a
 
-    def _landing(self, stance_ankle, com, com_velocity, yaw, t_remaining, swing, vx, vy, wz) -> np.ndarray:
-        """Swing ankle landing point relative to the stance ankle (world axes, z = 0: flat ground)."""
+    def _landing(self, stance_ankle, centre, dcm, yaw, t_remaining, swing, vx, vy, wz) -> np.ndarray:
+        """Swing ankle landing point relative to the stance ankle (world axes, z = 0: flat ground), from the DCM
+        and the stance foot's centre (both relative to the base, world axes)."""
         p = self.params
-        cy, sy = math.cos(yaw), math.sin(yaw)
-        centre = stance_ankle + p.foot_centre * np.array([cy, sy, 0.0])
-        xi = com[:2] + com_velocity[:2] / self.omega
-        xi_end = centre[:2] + (xi - centre[:2]) * math.exp(self.omega * t_remaining)
+        xi_end = centre[:2] + (dcm[:2] - centre[:2]) * math.exp(self.omega * t_remaining)
         e = self.growth
         sign = 1.0 if swing == 1 else -1.0  # the left foot lands on the left
         T = self.step_time
