@@ -16,6 +16,7 @@ import numpy as np
 import yaml
 
 from bruce_hw.coupling import Coupling
+from drivers.can_motor import MitRanges  # the MIT frame ranges: one type for the config and the driver
 
 DEFAULT_CONFIG = "configs/robots/bruce.yaml"
 _MODELS_DIR = Path(__file__).resolve().parent / "models"
@@ -39,9 +40,31 @@ class SerialBus:
 
 
 @dataclass(frozen=True, slots=True)
+class CanMotor:
+    """One MIT-mode CAN motor: the actuator in the coupling column of joint slot `slot` (joints.names order)."""
+
+    slot: str
+    channel: str
+    id: int
+    gear: float      # actuator output per motor output: motor position = gear * sign * (m - offset)
+    sign: float      # +1 or -1
+    offset: float    # rad, actuator position at the motor's zero
+    ranges: MitRanges
+
+
+@dataclass(frozen=True, slots=True)
 class CanBus:
     interface: str
-    channel: str
+    channel: str                          # default channel of `motors`
+    bitrate: int | None = None            # None: as the interface is set up (socketcan: `ip link`)
+    host_id: int = 0                      # arbitration ID the motors reply on
+    timeout_s: float | None = None        # per-tick reply timeout; None: the driver's default
+    motor_type: str | None = None         # what the ranges were chosen for, e.g. "AK80-9 V1.1"
+    motors: tuple[CanMotor, ...] = ()     # legs on CAN: one per joint slot, in joints.names order; () when not
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return tuple(dict.fromkeys(m.channel for m in self.motors))
 
 
 @dataclass(frozen=True, slots=True)
@@ -256,6 +279,77 @@ def _serial(r: _Reader, key: str, with_ids: bool, n_ids: int = 0) -> SerialBus:
     return SerialBus(port=r.string(f"{key}.port"), baud=r.integer(f"{key}.baud", positive=True), ids=ids)
 
 
+_CAN_KEYS = {"interface", "channel", "bitrate", "host_id", "timeout_s", "motor_type", "ranges", "motors"}
+_CAN_MOTOR_KEYS = {"id", "channel", "gear", "sign", "offset", "ranges"}
+_CAN_RANGE_KEYS = ("p", "v", "kp", "kd", "t")
+
+
+def _can_ranges(r: _Reader, key: str) -> MitRanges:
+    r.mapping(key, set(_CAN_RANGE_KEYS))
+    pairs = {}
+    for name in _CAN_RANGE_KEYS:
+        lo, hi = (float(x) for x in r.vector(f"{key}.{name}", 2))
+        gain = name in ("kp", "kd")
+        if not lo < hi or (gain and lo < 0):
+            raise r.fail(f"{key}.{name}", "[min, max] with min < max" + (" and min >= 0" if gain else ""), [lo, hi])
+        pairs[name] = (lo, hi)
+    return MitRanges(**pairs)
+
+
+def _can_motor(r: _Reader, key: str, slot: str, channel: str, default_ranges: MitRanges | None) -> CanMotor:
+    node = r.mapping(key, _CAN_MOTOR_KEYS)
+    motor_id = r.integer(f"{key}.id")
+    gear = r.number(f"{key}.gear", positive=True) if "gear" in node else 1.0
+    sign = r.number(f"{key}.sign") if "sign" in node else 1.0
+    if sign not in (1.0, -1.0):
+        raise r.fail(f"{key}.sign", "1 or -1", node["sign"])
+    offset = r.number(f"{key}.offset") if "offset" in node else 0.0
+    if "ranges" in node:
+        ranges = _can_ranges(r, f"{key}.ranges")
+    elif default_ranges is None:
+        raise ConfigError(f"{r.path}: {key}.ranges: missing key (and no buses.can.ranges default)")
+    else:
+        ranges = default_ranges
+    return CanMotor(slot=slot, channel=str(node.get("channel", channel)), id=motor_id, gear=gear, sign=sign,
+                    offset=offset, ranges=ranges)
+
+
+def _can(r: _Reader, joints: tuple[str, ...]) -> CanBus:
+    """buses.can: the interface and channel, and optionally the legs on MIT-mode CAN motors (`motors`)."""
+    node = r.mapping("buses.can", _CAN_KEYS)
+    channel = str(r.node("buses.can.channel"))
+    host_id = r.integer("buses.can.host_id") if "host_id" in node else 0
+    if not 0 <= host_id <= 0x7FF:
+        raise r.fail("buses.can.host_id", "a standard CAN ID 0..2047", host_id)
+    motors: tuple[CanMotor, ...] = ()
+    if "motors" in node:
+        default_ranges = _can_ranges(r, "buses.can.ranges") if "ranges" in node else None
+        table = r.mapping("buses.can.motors")
+        unknown = [name for name in table if name not in joints]
+        if unknown:
+            raise ConfigError(f"{r.path}: buses.can.motors.{unknown[0]}: unknown joint (expected one of "
+                              f"{list(joints)})")
+        missing = [name for name in joints if name not in table]
+        if missing:
+            raise ConfigError(f"{r.path}: buses.can.motors.{missing[0]}: missing joint (every joint slot of "
+                              f"{list(joints)} needs a motor)")
+        motors = tuple(_can_motor(r, f"buses.can.motors.{name}", name, channel, default_ranges) for name in joints)
+        ids = [m.id for m in motors]
+        if len(set(ids)) != len(ids) or not all(1 <= i <= 0xFF and i != host_id for i in ids):
+            raise r.fail("buses.can.motors", f"unique motor IDs in 1..255, other than host_id {host_id}", ids)
+    elif "ranges" in node:
+        _can_ranges(r, "buses.can.ranges")
+    return CanBus(
+        interface=r.string("buses.can.interface"),
+        channel=channel,
+        bitrate=r.integer("buses.can.bitrate", positive=True) if "bitrate" in node else None,
+        host_id=host_id,
+        timeout_s=r.number("buses.can.timeout_s", positive=True) if "timeout_s" in node else None,
+        motor_type=r.string("buses.can.motor_type") if "motor_type" in node else None,
+        motors=motors,
+    )
+
+
 _TOP_KEYS = {"name", "mjcf", "rates", "joints", "gains", "actuators", "coupling", "arms", "safety", "policy", "pinn",
              "buses"}
 
@@ -351,12 +445,11 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
     hold = r.per_joint("arms.hold_pose", arm_names)
 
     r.mapping("buses", {"bear", "dynamixel", "sense", "can"})
-    r.mapping("buses.can", {"interface", "channel"})
     buses = Buses(
         bear=_serial(r, "buses.bear", with_ids=True, n_ids=n),
         dynamixel=_serial(r, "buses.dynamixel", with_ids=True, n_ids=len(arm_names)),
         sense=_serial(r, "buses.sense", with_ids=False),
-        can=CanBus(interface=r.string("buses.can.interface"), channel=str(r.node("buses.can.channel"))),
+        can=_can(r, joints),
     )
 
     return RobotConfig(

@@ -3,11 +3,9 @@
 A real BRUCE measures joint angles and velocities, the IMU's gyro and specific force, and four toe/heel
 contact switches; the sense board gives no orientation, so none is used here.
 
-- Attitude: a Mahony complementary filter. The gyro is integrated (yaw starts at 0 on reset and is never
-  corrected: nothing on the robot observes heading); roll and pitch are pulled towards the direction of the
-  specific force, which points up when the base does not accelerate. That pull, and the integral that learns
-  the gyro bias from it, fade out when |accel| leaves g: during impacts and landings the accelerometer says
-  little about gravity.
+- Attitude: `bruce_hw.attitude.MahonyAttitude` (gyro integrated, roll and pitch pulled towards the specific
+  force while |accel| is near g, gyro bias learned; yaw starts at 0 on reset and is never corrected: nothing on
+  the robot observes heading).
 - Velocity: a Kalman filter on the base's linear velocity in the (yaw-relative) world frame. Prediction
   integrates the accelerometer, v += (R a - g) dt, whose errors (tilt error times g, biases, impacts) grow the
   variance; each foot with a contact switch closed is a measurement: a foot point touching the ground
@@ -23,26 +21,13 @@ contact switches; the sense board gives no orientation, so none is used here.
 
 from __future__ import annotations
 
-import math
-
 import mujoco
 import numpy as np
 
+from bruce_hw.attitude import MAX_IMU_GAP_S, MahonyAttitude
 from bruce_hw.config import RobotConfig
 from bruce_hw.types import FOOT_CONTACT_NAMES, RobotState
 from runtime.estimation import BaseEstimate, euler_of, rotate_to_body
-
-# -- attitude (Mahony) ------------------------------------------------------------------------------------
-# rad/s of correction per rad of tilt error: a ~1 s time constant, long next to a step (0.1-0.3 s), so the
-# horizontal accelerations of walking and pushes (which |a| barely shows) average out, short next to the
-# drift of a gyro bias (minutes).
-ATTITUDE_GAIN = 1.0
-# 1/s^2, integral of the same error into the gyro bias: poles at -0.11 and -0.89 1/s with the gain above, so a
-# bias is learned in ~10 s without overshoot. A heading bias is not observable from gravity and stays.
-GYRO_BIAS_GAIN = 0.1
-# The accelerometer's weight falls linearly from 1 at |a| = g to 0 at |a| = g (1 +- ACCEL_TRUST_BAND). In the
-# mock, standing stays within 1 % of g and 5 N pushes within 7 %; a landing reaches several g.
-ACCEL_TRUST_BAND = 0.2
 
 # -- velocity Kalman filter ------------------------------------------------------------------------------
 # ODOMETRY_STD, m/s: one-sample (1 kHz) standard deviation of a leg-odometry velocity. Our assumption, not a
@@ -63,9 +48,6 @@ TOUCHDOWN_STD_SCALE = 10.0
 TOUCHDOWN_S = 0.02
 # m/s, standard deviation of the velocity at reset (the robot is at rest, up to sway).
 RESET_VELOCITY_STD = 0.01
-# s, the longest gap between IMU samples integrated as one step: a single sample says little about a longer
-# stall, and integrating it over the whole gap would jolt the estimate.
-MAX_IMU_GAP_S = 0.01
 
 FEET = (("r_toe", "r_heel"), ("l_toe", "l_heel"))  # per foot, its toe and heel contact/geom names
 
@@ -111,26 +93,15 @@ class KinematicEstimator:
         self.touchdown_ticks = max(1, round(TOUCHDOWN_S * config.loop_hz))
         self.odometry_variance = ODOMETRY_STD ** 2
         self.touchdown_variance = (TOUCHDOWN_STD_SCALE * ODOMETRY_STD) ** 2
+        self.attitude = MahonyAttitude(self.gravity)
         self.stamp = 0.0
-        self.quat = (1.0, 0.0, 0.0, 0.0)        # (w, x, y, z), base -> world
-        self.gyro_bias = (0.0, 0.0, 0.0)       # rad/s
-        self.angvel = (0.0, 0.0, 0.0)          # rad/s, base frame, bias removed
         self.velocity = (0.0, 0.0, 0.0)        # m/s, world frame
         self.variance = RESET_VELOCITY_STD ** 2  # (m/s)^2, per axis
 
     def reset(self, state: RobotState) -> None:
-        """At rest: zero velocity, roll and pitch from the specific force, yaw 0, no gyro bias. A specific force
-        far from g (the mock's first tick, while its contacts settle) says nothing about tilt: start level."""
-        ax, ay, az = state.imu.accel.tolist()
-        roll = pitch = 0.0
-        if self.accel_trust(math.sqrt(ax * ax + ay * ay + az * az)) > 0.0:
-            roll = math.atan2(ay, az)
-            pitch = math.atan2(-ax, math.hypot(ay, az))
-        cr, sr, cp, sp = math.cos(roll / 2), math.sin(roll / 2), math.cos(pitch / 2), math.sin(pitch / 2)
-        self.quat = (cp * cr, cp * sr, sp * cr, -sp * sr)  # q_y(pitch) q_x(roll): ZYX with yaw 0
+        """At rest: zero velocity, attitude levelled from the specific force (`MahonyAttitude.reset`)."""
+        self.attitude.reset(state.imu.gyro, state.imu.accel, state.imu.stamp)
         self.stamp = state.imu.stamp
-        self.gyro_bias = (0.0, 0.0, 0.0)
-        self.angvel = tuple(state.imu.gyro.tolist())
         self.velocity = (0.0, 0.0, 0.0)
         self.variance = RESET_VELOCITY_STD ** 2
         contact = state.contacts.contact.tolist()
@@ -138,43 +109,15 @@ class KinematicEstimator:
             on_ground = contact[foot.toe_switch] or contact[foot.heel_switch]
             foot.ticks_on_ground = self.touchdown_ticks if on_ground else 0
 
-    def accel_trust(self, norm: float) -> float:
-        """Weight of the accelerometer's direction as the up direction, for a specific force of magnitude `norm`
-        (<= 0: not used)."""
-        return 1.0 - abs(norm - self.gravity) / (ACCEL_TRUST_BAND * self.gravity)
-
     def update(self, state: RobotState) -> None:
         """One tick: attitude from the gyro and accelerometer, velocity predicted from the accelerometer, then
         corrected by the odometry of each foot on the ground."""
         imu = state.imu
         dt = min(max(imu.stamp - self.stamp, 0.0), MAX_IMU_GAP_S)
         self.stamp = imu.stamp
-        bx, by, bz = self.gyro_bias
-        gx, gy, gz = imu.gyro.tolist()
-        gx, gy, gz = gx - bx, gy - by, gz - bz
-        self.angvel = (gx, gy, gz)
-        w, x, y, z = self.quat
-
-        # Attitude: Mahony correction towards the measured up direction, weighted by how close |a| is to g.
+        w, x, y, z = self.attitude.update(imu.gyro, imu.accel, imu.stamp)
+        gx, gy, gz = self.attitude.angvel  # bias removed
         ax, ay, az = imu.accel.tolist()
-        norm = math.sqrt(ax * ax + ay * ay + az * az)
-        trust = self.accel_trust(norm)
-        cx, cy, cz = gx, gy, gz
-        if trust > 0.0:
-            ux, uy, uz = ax / norm, ay / norm, az / norm
-            vx, vy, vz = 2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z  # estimated up
-            ex, ey, ez = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx  # u x v: turns v towards u
-            k = GYRO_BIAS_GAIN * trust * dt
-            bx, by, bz = bx - k * ex, by - k * ey, bz - k * ez
-            self.gyro_bias = (bx, by, bz)
-            k = ATTITUDE_GAIN * trust
-            cx, cy, cz = cx + k * ex, cy + k * ey, cz + k * ez
-        h = 0.5 * dt
-        w, x, y, z = (w - h * (x * cx + y * cy + z * cz), x + h * (w * cx + y * cz - z * cy),
-                      y + h * (w * cy - x * cz + z * cx), z + h * (w * cz + x * cy - y * cx))
-        n = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
-        w, x, y, z = w * n, x * n, y * n, z * n
-        self.quat = (w, x, y, z)
         r00, r01, r02 = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
         r10, r11, r12 = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
         r20, r21, r22 = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
@@ -230,6 +173,6 @@ class KinematicEstimator:
         self.variance = variance
 
     def estimate(self) -> BaseEstimate:
-        quat = np.array(self.quat)
+        quat = np.array(self.attitude.quat)
         return BaseEstimate(quat=quat, linvel=rotate_to_body(quat, np.array(self.velocity)),
-                            angvel=np.array(self.angvel), euler=euler_of(quat))
+                            angvel=np.array(self.attitude.angvel), euler=euler_of(quat))

@@ -1,0 +1,88 @@
+"""The base's attitude from a gyro and an accelerometer: a Mahony complementary filter.
+
+The gyro is integrated; roll and pitch are pulled towards the measured up direction (the specific force's), and
+the same error is integrated into a gyro bias. The pull fades as |a| leaves g, so landings and the motors'
+reaction forces do not tilt it. Heading comes from the gyro alone and drifts: gravity does not observe it.
+One filter for every consumer: the hw backend (which fills `ImuSample.orientation` for a sense board that has
+none) and the kinematic base estimator.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+# rad/s of correction per rad of tilt error: a ~1 s time constant, long next to a step (0.1-0.3 s), so the
+# horizontal accelerations of walking and pushes (which |a| barely shows) average out, short next to the
+# drift of a gyro bias (minutes).
+ATTITUDE_GAIN = 1.0
+# 1/s^2, integral of the same error into the gyro bias: poles at -0.11 and -0.89 1/s with the gain above, so a
+# bias is learned in ~10 s without overshoot. A heading bias is not observable from gravity and stays.
+GYRO_BIAS_GAIN = 0.1
+# The accelerometer's weight falls linearly from 1 at |a| = g to 0 at |a| = g (1 +- ACCEL_TRUST_BAND). In the
+# mock, standing stays within 1 % of g and 5 N pushes within 7 %; a landing reaches several g.
+ACCEL_TRUST_BAND = 0.2
+# s, the longest gap between IMU samples integrated as one step: a single sample says little about a longer
+# stall, and integrating it over the whole gap would jolt the estimate.
+MAX_IMU_GAP_S = 0.01
+
+
+class MahonyAttitude:
+    def __init__(self, gravity: float = 9.81):
+        self.gravity = gravity
+        self.quat = (1.0, 0.0, 0.0, 0.0)      # (w, x, y, z), IMU (base) -> world
+        self.gyro_bias = (0.0, 0.0, 0.0)     # rad/s
+        self.angvel = (0.0, 0.0, 0.0)        # rad/s, body frame, bias removed
+        self.stamp: float | None = None
+
+    def accel_trust(self, norm: float) -> float:
+        """Weight of the accelerometer's direction as the up direction, for a specific force of magnitude `norm`
+        (<= 0: not used)."""
+        return 1.0 - abs(norm - self.gravity) / (ACCEL_TRUST_BAND * self.gravity)
+
+    def reset(self, gyro: np.ndarray, accel: np.ndarray, stamp: float) -> None:
+        """At rest: roll and pitch from the specific force, yaw 0, no gyro bias. A specific force far from g (the
+        mock's first tick, while its contacts settle) says nothing about tilt: start level."""
+        ax, ay, az = (float(v) for v in accel)
+        roll = pitch = 0.0
+        if self.accel_trust(math.sqrt(ax * ax + ay * ay + az * az)) > 0.0:
+            roll = math.atan2(ay, az)
+            pitch = math.atan2(-ax, math.hypot(ay, az))
+        cr, sr, cp, sp = math.cos(roll / 2), math.sin(roll / 2), math.cos(pitch / 2), math.sin(pitch / 2)
+        self.quat = (cp * cr, cp * sr, sp * cr, -sp * sr)  # q_y(pitch) q_x(roll): ZYX with yaw 0
+        self.gyro_bias = (0.0, 0.0, 0.0)
+        self.angvel = tuple(float(v) for v in gyro)
+        self.stamp = stamp
+
+    def update(self, gyro: np.ndarray, accel: np.ndarray, stamp: float) -> tuple[float, float, float, float]:
+        """Advance to this sample (a repeated or older sample integrates nothing); the orientation (w, x, y, z)."""
+        if self.stamp is None:
+            self.reset(gyro, accel, stamp)
+        dt = min(max(stamp - self.stamp, 0.0), MAX_IMU_GAP_S)
+        self.stamp = max(stamp, self.stamp)
+        bx, by, bz = self.gyro_bias
+        gx, gy, gz = gyro.tolist()
+        gx, gy, gz = gx - bx, gy - by, gz - bz
+        self.angvel = (gx, gy, gz)
+        if dt <= 0.0:
+            return self.quat
+        w, x, y, z = self.quat
+        ax, ay, az = accel.tolist()
+        norm = math.sqrt(ax * ax + ay * ay + az * az)
+        trust = self.accel_trust(norm)
+        cx, cy, cz = gx, gy, gz
+        if trust > 0.0:
+            ux, uy, uz = ax / norm, ay / norm, az / norm
+            vx, vy, vz = 2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z  # estimated up
+            ex, ey, ez = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx  # u x v: turns v towards u
+            k = GYRO_BIAS_GAIN * trust * dt
+            self.gyro_bias = (bx - k * ex, by - k * ey, bz - k * ez)
+            k = ATTITUDE_GAIN * trust
+            cx, cy, cz = cx + k * ex, cy + k * ey, cz + k * ez
+        h = 0.5 * dt
+        w, x, y, z = (w - h * (x * cx + y * cy + z * cz), x + h * (w * cx + y * cz - z * cy),
+                      y + h * (w * cy - x * cz + z * cx), z + h * (w * cz + x * cy - y * cx))
+        n = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
+        self.quat = (w * n, x * n, y * n, z * n)
+        return self.quat

@@ -1,0 +1,719 @@
+"""Koala BEAR actuators (Westwood Robotics) on RS-485: register tables, packet encoders, a resynchronising reply
+parser, and `BearBus`, a pyserial driver with bounded timeouts whose `bulk_cycle` does one control tick's I/O.
+
+Wire protocol (Dynamixel-1.0-like; docs: research notes bruce_hw.md §2):
+
+    instruction   FF FF ID LEN INSTR params... CHK
+    status reply  FF FF ID LEN ERROR data...   CHK
+
+LEN counts the bytes after it (instruction/error byte, parameters, checksum), so LEN = n_params + 2.
+CHK = ~(ID + LEN + INSTR/ERROR + params) & 0xFF. Register values are 4 bytes little-endian, float32 or uint32 by
+register. Writes (WRITE_STAT, WRITE_CFG, SAVE_CFG) get no reply. BULK_COMM (0x12) goes to the broadcast ID 0xFE with
+params N, (n_read << 4 | n_write), read addresses, write addresses, then per motor its ID and 4 bytes per write
+register; every listed motor answers one status packet (LEN = 4 n_read + 2) in request order, none if n_read = 0.
+
+Choices where the sources are silent or disagree (drivers/emulators/bear.py makes the same ones):
+- homing_complete is u32 (PyBEAR and AOS; the Rust driver types it f32). error_status and warning_status (0x0E, 0x0F,
+  u32) stay in the table (AOS lists them; the Rust driver dropped them as unused).
+- Status registers other than torque_enable and the goals are read-only: the driver refuses to write them.
+- Error bits 0 (communication) and 1 (overheat) are warnings that reset by themselves; bits 2-6 are faults
+  (`FAULT_BITS`); bit 3 is the watchdog / E-stop / damping bit. A reply whose error byte lacks bit 7 is not a status
+  packet (it is an instruction, e.g. an echo or another host) and is rejected as "foreign".
+- The ping reply's data (firmware/hardware version; content undocumented) is returned as raw bytes of any length.
+- Timeouts: all replies of a request must be in within `reply_timeout_s` (2 ms: BRUCE's bulk_timeout, AOS) plus the
+  wire time of request and replies at the bus baud rate; `tries` = 2 (AOS). A bulk retry is sent only to the motors
+  that did not answer (their goals are written again; goal writes are idempotent). Serial reads block at most
+  `read_slice_s` each, so no call can block for long, whatever the device does.
+- Config registers can only be written while torque is disabled (Rust driver), and a BEAR gives no reply to writes,
+  so `write_config` reads the values back and raises if the device did not take them.
+- f32 values must be finite (a NaN goal is never sent to a motor); u32 values must be integers in range, so a u32
+  register is never encoded as float32 (PyBEAR's bulk path does that; the sources call it a bug).
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import time
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from enum import IntEnum, IntFlag
+
+import numpy as np
+
+from drivers.errors import BusTimeout, DeviceFault, DriverError, LinkStats
+
+HEADER = b"\xff\xff"
+BROADCAST_ID = 0xFE
+MAX_DEVICE_ID = 0xFD  # 0xFE is the broadcast ID, and an ID of 0xFF would read as a header byte
+DEFAULT_BAUD = 8_000_000
+MAX_BULK_REGISTERS = 15  # one nibble each for the read and the write count
+MAX_PARAMS = 253  # LEN is one byte: n_params + 2 <= 255
+MAX_FRAME = 4 + 255  # FF FF ID LEN + LEN bytes
+FLOAT32_MAX = 3.4028234663852886e38
+
+
+class Instruction(IntEnum):
+    PING = 0x01
+    READ_STAT = 0x02
+    WRITE_STAT = 0x03
+    READ_CFG = 0x04
+    WRITE_CFG = 0x05
+    SAVE_CFG = 0x06
+    SET_POSITION = 0x08  # absolute-position reset of battery-backed BEARs; probably not on Koala, unused here
+    BULK_COMM = 0x12
+
+
+class Mode(IntEnum):
+    """Config register `mode`."""
+
+    TORQUE = 0  # goal_iq
+    VELOCITY = 1  # goal_velocity
+    POSITION = 2  # goal_position
+    FORCE = 3  # "direct force": spring-damper around goal_position/goal_velocity plus goal_iq feed-forward
+
+
+class TorqueEnable(IntEnum):
+    """Status register `torque_enable`: 0, 1 and 3 are written; 2 is only read (the BEAR is in error)."""
+
+    DISABLED = 0
+    ENABLED = 1
+    ERROR = 2
+    DAMPING = 3
+
+
+# The goals each mode's bulk cycle writes, in the order they go on the wire (BRUCE's run_bear.py).
+GOALS_BY_MODE: dict[Mode, tuple[str, ...]] = {
+    Mode.TORQUE: ("goal_iq",),
+    Mode.VELOCITY: ("goal_velocity",),
+    Mode.POSITION: ("goal_position",),
+    Mode.FORCE: ("goal_position", "goal_velocity", "goal_iq"),
+}
+CYCLE_READS = ("present_position", "present_velocity", "present_iq")
+
+
+# -- register tables ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Register:
+    name: str
+    address: int
+    kind: str  # "u32" or "f32"
+    table: str  # "config" or "status"
+    writable: bool = True
+
+    @property
+    def fmt(self) -> str:
+        """struct format character of the value."""
+        return "I" if self.kind == "u32" else "f"
+
+    def check(self, value) -> int | float:
+        """The value as it will be packed: an int for u32 (never a float), a finite float for f32."""
+        if self.kind == "u32":
+            if isinstance(value, bool | np.bool_ | int | np.integer):
+                number = int(value)
+            elif isinstance(value, float | np.floating) and float(value).is_integer():
+                number = int(value)
+            else:
+                raise ValueError(f"{self.name} is u32: {value!r} is not an integer")
+            if not 0 <= number <= 0xFFFFFFFF:
+                raise ValueError(f"{self.name} is u32: {number} is out of range")
+            return number
+        try:
+            number = float(value)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{self.name} is f32: {value!r} is not a number") from exc
+        if not math.isfinite(number) or abs(number) > FLOAT32_MAX:
+            raise ValueError(f"{self.name} is f32: {value!r} is not a finite float32")
+        return number
+
+    def encode(self, value) -> bytes:
+        return struct.pack("<" + self.fmt, self.check(value))
+
+    def decode(self, raw: bytes) -> int | float:
+        return struct.unpack("<" + self.fmt, raw)[0]
+
+
+def _table(table: str, rows: Sequence[tuple[int, str, str]], read_only: Iterable[str] = ()) -> dict[str, Register]:
+    read_only = set(read_only)
+    return {name: Register(name, address, kind, table, name not in read_only) for address, name, kind in rows}
+
+
+# Saved to flash by SAVE_CFG; writable only while torque is disabled. 0x1D is not documented anywhere.
+CONFIG_REGISTERS = _table("config", [
+    (0x00, "id", "u32"),
+    (0x01, "mode", "u32"),
+    (0x02, "baudrate", "u32"),  # encoding undocumented
+    (0x03, "homing_offset", "f32"),
+    (0x04, "p_gain_id", "f32"), (0x05, "i_gain_id", "f32"), (0x06, "d_gain_id", "f32"),
+    (0x07, "p_gain_iq", "f32"), (0x08, "i_gain_iq", "f32"), (0x09, "d_gain_iq", "f32"),
+    (0x0A, "p_gain_velocity", "f32"), (0x0B, "i_gain_velocity", "f32"), (0x0C, "d_gain_velocity", "f32"),
+    (0x0D, "p_gain_position", "f32"), (0x0E, "i_gain_position", "f32"), (0x0F, "d_gain_position", "f32"),
+    (0x10, "p_gain_force", "f32"), (0x11, "i_gain_force", "f32"), (0x12, "d_gain_force", "f32"),
+    (0x13, "limit_acc_max", "f32"),
+    (0x14, "limit_i_max", "f32"),
+    (0x15, "limit_velocity_max", "f32"),
+    (0x16, "limit_position_min", "f32"),
+    (0x17, "limit_position_max", "f32"),
+    (0x18, "min_voltage", "f32"),
+    (0x19, "max_voltage", "f32"),
+    (0x1A, "watchdog_timeout", "u32"),  # units undocumented
+    (0x1B, "temp_limit_low", "f32"),
+    (0x1C, "temp_limit_high", "f32"),
+    (0x1E, "return_time_delay", "u32"),  # Rust driver only, "experimental"
+])
+
+# Volatile. BULK_COMM only reaches these.
+STATUS_REGISTERS = _table("status", [
+    (0x00, "torque_enable", "u32"),
+    (0x01, "homing_complete", "u32"),
+    (0x02, "goal_id", "f32"),
+    (0x03, "goal_iq", "f32"),
+    (0x04, "goal_velocity", "f32"),
+    (0x05, "goal_position", "f32"),
+    (0x06, "present_id", "f32"),
+    (0x07, "present_iq", "f32"),
+    (0x08, "present_velocity", "f32"),
+    (0x09, "present_position", "f32"),
+    (0x0A, "input_voltage", "f32"),
+    (0x0B, "winding_temperature", "f32"),
+    (0x0C, "powerstage_temperature", "f32"),
+    (0x0D, "ic_temperature", "f32"),
+    (0x0E, "error_status", "u32"),
+    (0x0F, "warning_status", "u32"),
+], read_only=("homing_complete", "present_id", "present_iq", "present_velocity", "present_position",
+              "input_voltage", "winding_temperature", "powerstage_temperature", "ic_temperature",
+              "error_status", "warning_status"))
+
+REGISTER_ALIASES = {"limit_iq_max": "limit_i_max"}
+CONFIG_BY_ADDRESS = {r.address: r for r in CONFIG_REGISTERS.values()}
+STATUS_BY_ADDRESS = {r.address: r for r in STATUS_REGISTERS.values()}
+
+
+def _lookup(table: str, key: str | int | Register) -> Register:
+    by_name, by_address = (CONFIG_REGISTERS, CONFIG_BY_ADDRESS) if table == "config" else \
+        (STATUS_REGISTERS, STATUS_BY_ADDRESS)
+    if isinstance(key, Register):
+        if key.table != table:
+            raise ValueError(f"{key.name} is a {key.table} register, not a {table} register")
+        return key
+    found = by_address.get(key) if isinstance(key, int) else by_name.get(REGISTER_ALIASES.get(key, key))
+    if found is None:
+        raise ValueError(f"no BEAR {table} register {key!r}")
+    return found
+
+
+def config_register(key: str | int | Register) -> Register:
+    """A config register by name, alias or address."""
+    return _lookup("config", key)
+
+
+def status_register(key: str | int | Register) -> Register:
+    """A status register by name or address."""
+    return _lookup("status", key)
+
+
+# -- error byte -----------------------------------------------------------------------------------------------------
+class BearError(IntFlag):
+    """Bits of the error byte every reply carries. Bit 7 is always set: 0x80 means no error."""
+
+    COMMUNICATION = 0x01  # a corrupted packet was received (warning, resets by itself)
+    OVERHEAT = 0x02  # a temperature is above temp_limit_low (warning, resets by itself)
+    ABSOLUTE_POSITION = 0x04
+    WATCHDOG_ESTOP = 0x08  # external E-stop, torque_enable = 3 written, or watchdog expiry in torque mode
+    JOINT_LIMIT = 0x10
+    HARDWARE = 0x20  # input voltage out of range or MOSFET driver fault
+    INITIALIZATION = 0x40  # corrupted flash save; recalibration needed
+
+
+ERROR_OK = 0x80
+WARNING_BITS = BearError.COMMUNICATION | BearError.OVERHEAT
+FAULT_BITS = 0x7F & ~WARNING_BITS
+
+
+def error_flags(error: int) -> tuple[str, ...]:
+    """Names of the bits set in an error byte, e.g. ("watchdog_estop",); () for 0x80."""
+    return tuple(flag.name.lower() for flag in BearError if error & flag)
+
+
+# -- packets (pure: no I/O) -----------------------------------------------------------------------------------------
+def checksum(body: bytes | bytearray) -> int:
+    """~(sum of ID..last parameter) & 0xFF; the two header bytes are not included."""
+    return ~sum(body) & 0xFF
+
+
+def encode_frame(device_id: int, code: int, params: bytes = b"") -> bytes:
+    """FF FF ID LEN code params CHK. `code` is the instruction (host) or the error byte (device)."""
+    if not 0 <= device_id <= BROADCAST_ID:
+        raise ValueError(f"BEAR ID {device_id} is out of range 0..{BROADCAST_ID}")
+    if len(params) > MAX_PARAMS:
+        raise ValueError(f"{len(params)} parameter bytes do not fit one BEAR packet (at most {MAX_PARAMS})")
+    body = bytes((device_id, len(params) + 2, code)) + bytes(params)
+    return HEADER + body + bytes((checksum(body),))
+
+
+def encode_status(device_id: int, error: int, data: bytes = b"") -> bytes:
+    """A device's reply packet (what the emulator sends)."""
+    return encode_frame(device_id, error, data)
+
+
+def _same_table(registers: Sequence[Register]) -> str:
+    tables = {r.table for r in registers}
+    if len(tables) > 1:
+        raise ValueError("one packet reads or writes either config or status registers, not both")
+    return tables.pop() if tables else "status"
+
+
+def encode_ping(device_id: int) -> bytes:
+    return encode_frame(device_id, Instruction.PING)
+
+
+def encode_read(device_id: int, registers: Sequence[Register]) -> bytes:
+    code = Instruction.READ_CFG if _same_table(registers) == "config" else Instruction.READ_STAT
+    return encode_frame(device_id, code, bytes(r.address for r in registers))
+
+
+def encode_write(device_id: int, values: Sequence[tuple[Register, int | float]]) -> bytes:
+    code = Instruction.WRITE_CFG if _same_table([r for r, _ in values]) == "config" else Instruction.WRITE_STAT
+    return encode_frame(device_id, code, b"".join(bytes((r.address,)) + r.encode(v) for r, v in values))
+
+
+def encode_save_config(device_id: int) -> bytes:
+    return encode_frame(device_id, Instruction.SAVE_CFG)
+
+
+def encode_bulk(ids: Sequence[int], read_regs: Sequence[Register], write_regs: Sequence[Register] = (),
+                values=None) -> bytes:
+    """BULK_COMM to the broadcast ID. `values[k][j]` is motor ids[k]'s value of write_regs[j], packed by type."""
+    ids = [int(i) for i in ids]
+    if not ids or len(set(ids)) != len(ids) or not all(0 <= i <= MAX_DEVICE_ID for i in ids):
+        raise ValueError(f"BULK_COMM needs distinct device IDs in 0..{MAX_DEVICE_ID}, got {ids}")
+    for regs in (read_regs, write_regs):
+        if len(regs) > MAX_BULK_REGISTERS:
+            raise ValueError(f"BULK_COMM takes at most {MAX_BULK_REGISTERS} read and {MAX_BULK_REGISTERS} write "
+                             "registers")
+        if any(r.table != "status" for r in regs):
+            raise ValueError("BULK_COMM reaches status registers only")
+    if any(not r.writable for r in write_regs):
+        raise ValueError(f"read-only registers cannot be written: {[r.name for r in write_regs if not r.writable]}")
+    rows = [] if not write_regs else list(values if values is not None else ())
+    if len(rows) != (len(ids) if write_regs else 0):
+        raise ValueError(f"BULK_COMM needs one row of {len(write_regs)} values per ID ({len(ids)} IDs)")
+    flat: list[int | float] = []
+    for device_id, row in zip(ids, rows, strict=False):
+        row = list(row)
+        if len(row) != len(write_regs):
+            raise ValueError(f"ID {device_id}: {len(row)} values for {len(write_regs)} write registers")
+        flat.append(device_id)
+        flat.extend(r.check(v) for r, v in zip(write_regs, row, strict=True))
+    if not write_regs:
+        flat = list(ids)
+    per_motor = "B" + "".join(r.fmt for r in write_regs)
+    params = (bytes((len(ids), len(read_regs) << 4 | len(write_regs)))
+              + bytes(r.address for r in read_regs) + bytes(r.address for r in write_regs)
+              + struct.pack("<" + per_motor * len(ids), *flat))
+    return encode_frame(BROADCAST_ID, Instruction.BULK_COMM, params)
+
+
+def decode_values(registers: Sequence[Register], data: bytes) -> list[int | float]:
+    """Typed values of a reply's data, one per register in order."""
+    if len(data) != 4 * len(registers):
+        raise ValueError(f"{len(data)} data bytes for {len(registers)} registers")
+    return list(struct.unpack("<" + "".join(r.fmt for r in registers), data))
+
+
+def reply_length(n_registers: int) -> int:
+    """LEN of a reply carrying n register values."""
+    return 4 * n_registers + 2
+
+
+@dataclass(frozen=True)
+class StatusPacket:
+    id: int
+    error: int
+    data: bytes
+
+    @property
+    def flags(self) -> tuple[str, ...]:
+        return error_flags(self.error)
+
+
+class StatusParser:
+    """Finds status packets in a byte stream: skips garbage up to the next FF FF header, rejects (and counts in
+    `stats`) bad lengths, bad checksums, instruction packets and unexpected IDs, and keeps an incomplete packet until
+    more bytes come. Never raises on any input; holds at most one frame's worth of bytes.
+
+    After a bad checksum it drops one byte only, not the claimed frame: a real packet may start inside it.
+    """
+
+    def __init__(self, stats: LinkStats | None = None):
+        self.stats = stats if stats is not None else LinkStats()
+        self._buffer = bytearray()
+        self._length: int | None = None
+        self._ids: frozenset[int] | None = None
+
+    def expect(self, length: int | None = None, ids: Iterable[int] | None = None) -> None:
+        """Accept only replies of this LEN and from these IDs (None: any). Gating on LEN means a false header in
+        garbage cannot make the parser wait for up to 255 bytes that will never come."""
+        self._length = length
+        self._ids = None if ids is None else frozenset(ids)
+
+    @property
+    def pending(self) -> int:
+        """Bytes held back: an incomplete packet (or a lone trailing 0xFF)."""
+        return len(self._buffer)
+
+    def clear(self) -> int:
+        dropped = len(self._buffer)
+        self._buffer.clear()
+        return dropped
+
+    def feed(self, data: bytes | bytearray) -> list[StatusPacket]:
+        buf = self._buffer
+        buf += data
+        found: list[StatusPacket] = []
+        while True:
+            start = buf.find(HEADER)
+            if start < 0:
+                keep = 1 if buf.endswith(b"\xff") else 0  # may be the first header byte
+                if len(buf) > keep:
+                    self.stats.reject("garbage")
+                    del buf[:len(buf) - keep]
+                return found
+            if start:
+                self.stats.reject("garbage")
+                del buf[:start]
+            if len(buf) < 5:
+                return found
+            device_id, length, error = buf[2], buf[3], buf[4]
+            reason = None
+            if device_id == 0xFF:  # FF FF FF: the header starts one byte later
+                reason = "garbage"
+            elif device_id == BROADCAST_ID or not error & 0x80:  # an instruction packet, not a reply
+                reason = "foreign"
+            elif length < 2 or (self._length is not None and length != self._length):
+                reason = "length"
+            if reason:
+                self.stats.reject(reason)
+                del buf[:1]
+                continue
+            total = 4 + length
+            if len(buf) < total:
+                return found
+            if checksum(buf[2:total - 1]) != buf[total - 1]:
+                self.stats.reject("checksum")
+                del buf[:1]
+                continue
+            packet = StatusPacket(device_id, error, bytes(buf[5:total - 1]))
+            del buf[:total]
+            if self._ids is not None and device_id not in self._ids:
+                self.stats.reject("foreign")
+                continue
+            self.stats.packets += 1
+            found.append(packet)
+
+
+# -- replies --------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PingReply:
+    id: int
+    error: int
+    data: bytes  # firmware/hardware version bytes (content undocumented)
+
+    @property
+    def flags(self) -> tuple[str, ...]:
+        return error_flags(self.error)
+
+
+@dataclass(frozen=True)
+class RegisterReply:
+    id: int
+    error: int
+    values: dict[str, int | float]
+
+    @property
+    def flags(self) -> tuple[str, ...]:
+        return error_flags(self.error)
+
+    def __getitem__(self, name: str) -> int | float:
+        return self.values[REGISTER_ALIASES.get(name, name)]
+
+
+@dataclass(frozen=True)
+class BulkReply:
+    """One BULK_COMM's answers, rows in the order of `ids`. u32 values are exact in float64."""
+
+    bus: str
+    ids: tuple[int, ...]
+    registers: tuple[str, ...]
+    values: np.ndarray  # (len(ids), len(registers)) float64
+    error: np.ndarray  # (len(ids),) uint8 error bytes; 0 where nothing was read (write-only bulk)
+
+    def column(self, name: str) -> np.ndarray:
+        return self.values[:, self.registers.index(name)]
+
+    @property
+    def position(self) -> np.ndarray:
+        return self.column("present_position")
+
+    @property
+    def velocity(self) -> np.ndarray:
+        return self.column("present_velocity")
+
+    @property
+    def iq(self) -> np.ndarray:
+        return self.column("present_iq")
+
+    def flags(self, device_id: int) -> tuple[str, ...]:
+        return error_flags(int(self.error[self.ids.index(device_id)]))
+
+    def faulted_ids(self) -> tuple[int, ...]:
+        """IDs reporting a fault bit (2-6; not the warnings)."""
+        return tuple(i for i, e in zip(self.ids, self.error, strict=True) if int(e) & FAULT_BITS)
+
+    def estop_ids(self) -> tuple[int, ...]:
+        """IDs reporting the watchdog / E-stop bit."""
+        return tuple(i for i, e in zip(self.ids, self.error, strict=True) if int(e) & BearError.WATCHDOG_ESTOP)
+
+    def raise_for_faults(self) -> None:
+        """DeviceFault naming the first faulted ID and its flags, if any ID reports a fault."""
+        for device_id in self.faulted_ids():
+            raise DeviceFault(self.bus, device_id, self.flags(device_id))
+
+
+# -- the bus --------------------------------------------------------------------------------------------------------
+def _names(keys: str | int | Sequence[str | int]) -> list[str | int]:
+    return [keys] if isinstance(keys, str | int) else list(keys)
+
+
+class BearBus:
+    """One RS-485 chain of BEARs on a USB-serial adapter (BRUCE: /dev/ttyUSB0, 8 Mbaud, IDs 1-10).
+
+    Every call is bounded in time: a reply comes within `reply_timeout_s` plus wire time or the request is retried
+    (`tries` in all), and then `BusTimeout(port, silent_ids)` names exactly the IDs that did not answer. Rejected
+    bytes and packets are counted in `stats` and never raised. Device errors come back as decoded flags; call
+    `BulkReply.raise_for_faults()` (or `ping` / `clear_errors`) to turn them into `DeviceFault`.
+    """
+
+    def __init__(self, port: str, baud: int = DEFAULT_BAUD, *, reply_timeout_s: float = 0.002, tries: int = 2,
+                 read_slice_s: float = 0.0005, write_timeout_s: float = 0.05, stats: LinkStats | None = None):
+        import serial  # lazily: the stack imports without pyserial
+
+        if tries < 1:
+            raise ValueError("tries must be at least 1")
+        self.port = port
+        self.baud = baud
+        self.reply_timeout_s = reply_timeout_s
+        self.tries = tries
+        self.read_slice_s = read_slice_s
+        self.stats = stats if stats is not None else LinkStats()
+        self._parser = StatusParser(self.stats)
+        self._io_errors = (serial.SerialException, OSError)
+        try:
+            # 8N1; the read timeout is one slice, so a read returns at the latest after read_slice_s.
+            self._serial = serial.Serial(port, baud, timeout=read_slice_s, write_timeout=write_timeout_s)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise DriverError(f"{port}: cannot open the BEAR bus at {baud} baud: {exc}") from exc
+
+    # -- lifecycle --
+    def close(self) -> None:
+        serial_port = getattr(self, "_serial", None)
+        if serial_port is not None and serial_port.is_open:
+            serial_port.close()
+
+    def __enter__(self) -> BearBus:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- instructions --
+    def ping(self, device_id: int) -> PingReply:
+        packet = self._request(encode_ping(device_id), device_id, None, "PING")
+        return PingReply(packet.id, packet.error, packet.data)
+
+    def scan(self, ids: Iterable[int]) -> dict[int, PingReply]:
+        """Ping each ID; the ones that answer (silent IDs are left out, not raised)."""
+        found = {}
+        for device_id in ids:
+            try:
+                found[device_id] = self.ping(device_id)
+            except BusTimeout:
+                pass
+        return found
+
+    def read_status(self, device_id: int, names: str | int | Sequence[str | int]) -> RegisterReply:
+        return self._read(device_id, [status_register(n) for n in _names(names)])
+
+    def read_config(self, device_id: int, names: str | int | Sequence[str | int]) -> RegisterReply:
+        return self._read(device_id, [config_register(n) for n in _names(names)])
+
+    def write_status(self, device_id: int, values: Mapping[str | int, int | float]) -> None:
+        registers = [status_register(n) for n in values]
+        read_only = [r.name for r in registers if not r.writable]
+        if read_only:
+            raise ValueError(f"read-only BEAR status registers: {read_only}")
+        self._send(encode_write(device_id, list(zip(registers, values.values(), strict=True))))
+
+    def write_config(self, device_id: int, values: Mapping[str | int, int | float], verify: bool = True) -> None:
+        """Write config registers; with `verify`, read them back and raise DriverError if the BEAR did not take
+        them (it ignores config writes while torque is enabled)."""
+        registers = [config_register(n) for n in values]
+        pairs = list(zip(registers, values.values(), strict=True))
+        self._send(encode_write(device_id, pairs))
+        if not verify or device_id == BROADCAST_ID:
+            return
+        readback_id = int(values.get("id", values.get(0, device_id)))  # the BEAR answers under its new ID
+        got = self._read(readback_id, registers).values
+        wrong = [r.name for r, v in pairs if got[r.name] != _as_sent(r, v)]
+        if wrong:
+            raise DriverError(f"{self.port}: ID {device_id} did not take config {', '.join(wrong)} "
+                              "(config registers are writable only while torque is disabled)")
+
+    def save_config(self, device_id: int) -> None:
+        """Store the config registers in flash (no reply)."""
+        self._send(encode_save_config(device_id))
+
+    def set_torque_enable(self, ids: Iterable[int], value: int) -> None:
+        """torque_enable to each ID: 0 disable (also clears errors), 1 enable, 3 damping."""
+        if int(value) not in (TorqueEnable.DISABLED, TorqueEnable.ENABLED, TorqueEnable.DAMPING):
+            raise ValueError("torque_enable is written 0 (disable), 1 (enable) or 3 (damping)")
+        for device_id in ids:
+            self.write_status(device_id, {"torque_enable": int(value)})
+
+    def clear_errors(self, device_id: int, attempts: int = 6) -> PingReply:
+        """BRUCE's start-up rule: while the BEAR reports an error without the E-stop bit, write torque_enable = 0
+        and ping again (at most `attempts` times). DeviceFault if the E-stop bit is set or the error stays."""
+        reply = self.ping(device_id)
+        for _ in range(attempts):
+            if reply.error == ERROR_OK or reply.error & BearError.WATCHDOG_ESTOP:
+                break
+            self.write_status(device_id, {"torque_enable": TorqueEnable.DISABLED})
+            reply = self.ping(device_id)
+        if reply.error & BearError.WATCHDOG_ESTOP:
+            raise DeviceFault(self.port, device_id, reply.flags + ("release the E-stop",))
+        if reply.error & FAULT_BITS:
+            raise DeviceFault(self.port, device_id, reply.flags)
+        return reply
+
+    def bulk_comm(self, ids: Sequence[int], read_regs: Sequence[str | int] = (), write_regs: Sequence[str | int] = (),
+                  values=None) -> BulkReply:
+        """One BULK_COMM: read `read_regs` of every ID and write `values[k]` (one row per ID, in `write_regs` order)
+        to ids[k]. Motors that do not answer are asked again (`tries` in all); BusTimeout names those that never do."""
+        ids = tuple(int(i) for i in ids)
+        reads = [status_register(n) for n in read_regs]
+        writes = [status_register(n) for n in write_regs]
+        if writes and (values is None or len(values) != len(ids)):
+            raise ValueError(f"BULK_COMM writes {len(writes)} registers: give one row of values per ID ({len(ids)})")
+        rows = {} if not writes else dict(zip(ids, [list(r) for r in values], strict=True))
+        request = encode_bulk(ids, reads, writes, [rows[i] for i in ids] if writes else None)  # validates first
+        names = tuple(r.name for r in reads)
+        if not reads:  # nobody answers a write-only bulk
+            self._send(request)
+            return BulkReply(self.port, ids, names, np.zeros((len(ids), 0)), np.zeros(len(ids), np.uint8))
+        got: dict[int, StatusPacket] = {}
+        pending = list(ids)
+        for attempt in range(self.tries):
+            if attempt:
+                self.stats.retries += 1
+                request = encode_bulk(pending, reads, writes, [rows[i] for i in pending] if writes else None)
+            got.update(self._exchange(request, pending, reply_length(len(reads))))
+            pending = [i for i in pending if i not in got]
+            if not pending:
+                break
+        if pending:
+            self.stats.timeouts += 1
+            raise BusTimeout(self.port, pending, f"BULK_COMM, {self.tries} tries")
+        fmt = "<" + "".join(r.fmt for r in reads)
+        table = np.array([struct.unpack(fmt, got[i].data) for i in ids], dtype=np.float64)
+        return BulkReply(self.port, ids, names, table, np.array([got[i].error for i in ids], dtype=np.uint8))
+
+    def bulk_cycle(self, ids: Sequence[int], mode: Mode | int | str | None, goal_position=None, goal_velocity=None,
+                   goal_iq=None) -> BulkReply:
+        """One control tick: read present_position, present_velocity and present_iq of every ID and write the
+        mode's goals (force: goal_position, goal_velocity, goal_iq; torque: goal_iq; position: goal_position;
+        velocity: goal_velocity; None: read only). Goals are arrays in ID order; the reply's `position`,
+        `velocity`, `iq` and `error` are arrays in ID order."""
+        writes: tuple[str, ...] = ()
+        columns = []
+        if mode is not None:
+            mode = Mode[mode.upper()] if isinstance(mode, str) else Mode(mode)
+            writes = GOALS_BY_MODE[mode]
+            goals = {"goal_position": goal_position, "goal_velocity": goal_velocity, "goal_iq": goal_iq}
+            for name in writes:
+                if goals[name] is None:
+                    raise ValueError(f"{mode.name.lower()} mode writes {name}: give it")
+                column = np.asarray(goals[name], dtype=np.float64).reshape(-1)
+                if column.shape != (len(ids),):
+                    raise ValueError(f"{name}: {column.size} values for {len(ids)} IDs")
+                columns.append(column)
+        values = np.column_stack(columns).tolist() if columns else None
+        return self.bulk_comm(ids, CYCLE_READS, writes, values)
+
+    def cycle_budget_s(self, n_ids: int, n_read: int = len(CYCLE_READS), n_write: int = 3) -> float:
+        """Longest a bulk call can take before BusTimeout, all tries included (excluding the host's scheduling)."""
+        request = 4 + n_ids + n_read + n_write + 4 * n_write * n_ids + 4
+        replies = n_ids * (4 + reply_length(n_read))
+        return self.tries * (self.reply_timeout_s + self._wire_s(request + replies) + self.read_slice_s)
+
+    # -- I/O --
+    def _wire_s(self, n_bytes: int) -> float:
+        return n_bytes * 10 / self.baud  # 8N1: 10 bits a byte
+
+    def _send(self, packet: bytes) -> None:
+        """Flush stale input (late replies of an earlier request), then write the whole packet."""
+        try:
+            self._serial.reset_input_buffer()
+            self._serial.write(packet)
+        except self._io_errors as exc:
+            raise DriverError(f"{self.port}: write failed: {exc}") from exc
+
+    def _read(self, device_id: int, registers: list[Register]) -> RegisterReply:
+        if not registers:
+            raise ValueError("name at least one register to read")
+        name = "READ_CFG" if registers[0].table == "config" else "READ_STAT"
+        packet = self._request(encode_read(device_id, registers), device_id, reply_length(len(registers)), name)
+        values = decode_values(registers, packet.data)
+        return RegisterReply(device_id, packet.error, {r.name: v for r, v in zip(registers, values, strict=True)})
+
+    def _request(self, request: bytes, device_id: int, length: int | None, what: str) -> StatusPacket:
+        if device_id == BROADCAST_ID:
+            raise ValueError(f"{what} to the broadcast ID gets no reply")
+        for attempt in range(self.tries):
+            if attempt:
+                self.stats.retries += 1
+            got = self._exchange(request, [device_id], length)
+            if device_id in got:
+                return got[device_id]
+        self.stats.timeouts += 1
+        raise BusTimeout(self.port, [device_id], f"{what}, {self.tries} tries")
+
+    def _exchange(self, request: bytes, ids: Sequence[int], length: int | None) -> dict[int, StatusPacket]:
+        """Send one request and collect one reply per ID until all are in or the deadline passes."""
+        per_reply = 4 + (length if length is not None else 2)
+        budget = self.reply_timeout_s + self._wire_s(len(request) + per_reply * len(ids))
+        self._parser.clear()
+        self._parser.expect(length, ids)
+        self._send(request)
+        deadline = time.monotonic() + budget
+        got: dict[int, StatusPacket] = {}
+        while len(got) < len(ids) and time.monotonic() < deadline:
+            missing = (len(ids) - len(got)) * per_reply - self._parser.pending
+            try:
+                chunk = self._serial.read(max(1, missing))  # returns when `missing` bytes are in or after a slice
+            except self._io_errors as exc:
+                raise DriverError(f"{self.port}: read failed: {exc}") from exc
+            for packet in self._parser.feed(chunk):
+                if packet.id in got:
+                    self.stats.reject("duplicate")
+                else:
+                    got[packet.id] = packet
+        if len(got) < len(ids) and self._parser.pending:
+            self.stats.reject("truncated")
+        self._parser.clear()
+        return got
+
+
+def _as_sent(register: Register, value) -> int | float:
+    """What the BEAR stores for a written value: f32 values come back rounded to float32."""
+    checked = register.check(value)
+    return checked if register.kind == "u32" else struct.unpack("<f", struct.pack("<f", checked))[0]

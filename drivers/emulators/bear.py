@@ -1,0 +1,510 @@
+"""A byte-exact emulator of a BEAR RS-485 chain: N Koala BEARs by ID behind one pseudo-terminal.
+
+The host opens `emulator.path` as it would /dev/ttyUSB0 and speaks the BEAR protocol (drivers/bear.py's docstring
+restates it): PING, READ_STAT, WRITE_STAT, READ_CFG, WRITE_CFG, SAVE_CFG and BULK_COMM are answered as the research
+notes (bruce_hw.md §2) describe, so any spec-following host works, not only `drivers.bear.BearBus`: no reply to
+writes, nor to anything sent to the broadcast ID except BULK_COMM; one status packet per listed motor, in request
+order, for BULK_COMM with reads; register values typed by the register tables (u32 or f32, little-endian).
+
+A physics adapter drives it through thread-safe accessors: `set_measured[_many]` (present position, velocity, iq)
+and `command` / `commands` (mode, torque_enable, goals, error byte), every 1 ms if it likes.
+
+Choices where the sources are silent (documented here because a host can observe them):
+- Config writes while torque is enabled (torque_enable reads anything but 0) are ignored, the whole packet, without an
+  error bit: the sources say only that config registers "can only be written while torque is disabled", and writes
+  get no reply. A host sees it by reading back (BearBus.write_config does). SAVE_CFG is ignored likewise.
+- torque_enable: writing 0 disables and clears latched faults and damping; 1 enables; 3 enters damping (sets bit 3);
+  other values are ignored with the communication bit. It reads 3 while damping or while the E-stop input is
+  asserted, 2 while enabled with a fault bit (2, 4, 5, 6) set, else the 0/1 last written.
+- Error bits: 0 is set by a corrupted packet (bad checksum) carrying this ID, an unknown register address, an
+  unsupported instruction or a malformed packet, and is cleared once reported. 1 (overheat) while a temperature is
+  above temp_limit_low; 5 (hardware) while input_voltage is outside [min_voltage, max_voltage]; 4 (joint limit)
+  while present_position is outside [limit_position_min, limit_position_max]; these follow the state, unlatched.
+  3 while damping or the E-stop input is asserted. Bits injected with `set_error` latch until torque_enable = 0 is
+  written (bit 3: until `set_error(id, 3, False)`, it models the external E-stop input).
+- Watchdog: watchdog_timeout (u32, units undocumented) is taken as milliseconds; 0 turns it off. In torque mode
+  (mode 0), enabled, a BEAR that has received no packet for longer than that goes into damping.
+- Reading an unknown address returns 4 zero bytes and sets bit 0 (a read whose reply would not fit one packet, over
+  63 addresses, gets no reply and sets bit 0); writing an unknown or read-only register skips it
+  and sets bit 0. A mode above 3 is refused (bit 0). Writing config `id` moves the BEAR to the new ID (if free).
+- BULK_COMM applies a motor's writes before reading its registers. A silent (`silence`) BEAR neither applies nor
+  answers anything, as if unplugged.
+- The ping reply's data is `ping_data` (2 bytes: firmware and hardware version; the content is undocumented).
+- present_position is reported as the physics adapter sets it (the homing offset is the adapter's business).
+- A partial packet older than 20 ms when new bytes arrive is dropped (an idle-line reset, as UART firmware does).
+"""
+
+from __future__ import annotations
+
+import struct
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.bear import (
+    BROADCAST_ID,
+    CONFIG_BY_ADDRESS,
+    CONFIG_REGISTERS,
+    ERROR_OK,
+    FAULT_BITS,
+    HEADER,
+    MAX_DEVICE_ID,
+    MAX_PARAMS,
+    STATUS_BY_ADDRESS,
+    STATUS_REGISTERS,
+    WARNING_BITS,
+    BearError,
+    Instruction,
+    Register,
+    TorqueEnable,
+    checksum,
+    encode_status,
+)
+from drivers.emulators.pty_device import PtyDevice
+from drivers.errors import LinkStats
+
+STALE_RX_S = 0.02
+CORRUPTIONS = ("checksum", "truncate", "garbage", "foreign", "drop")
+
+# Power-on values. Gains and limits are BRUCE's (bruce_hw.md §2.5); the rest are plausible choices.
+DEFAULT_CONFIG: dict[str, int | float] = {
+    "id": 0, "mode": 0, "baudrate": 8_000_000, "homing_offset": 0.0,
+    "p_gain_id": 0.277, "i_gain_id": 0.061, "d_gain_id": 0.0,
+    "p_gain_iq": 0.277, "i_gain_iq": 0.061, "d_gain_iq": 0.0,
+    "p_gain_velocity": 1.0, "i_gain_velocity": 0.0, "d_gain_velocity": 0.0,
+    "p_gain_position": 60.0, "i_gain_position": 0.0, "d_gain_position": 1.0,
+    "p_gain_force": 10.0, "i_gain_force": 0.0, "d_gain_force": 1.0,
+    "limit_acc_max": 1000.0, "limit_i_max": 30.0, "limit_velocity_max": 100.0,
+    "limit_position_min": -3.0, "limit_position_max": 3.0,
+    "min_voltage": 10.0, "max_voltage": 40.0, "watchdog_timeout": 0,
+    "temp_limit_low": 70.0, "temp_limit_high": 90.0, "return_time_delay": 0,
+}
+DEFAULT_STATUS: dict[str, int | float] = {
+    "homing_complete": 1, "goal_id": 0.0, "goal_iq": 0.0, "goal_velocity": 0.0, "goal_position": 0.0,
+    "present_id": 0.0, "present_iq": 0.0, "present_velocity": 0.0, "present_position": 0.0,
+    "input_voltage": 24.0, "winding_temperature": 30.0, "powerstage_temperature": 30.0, "ic_temperature": 30.0,
+}
+
+
+def _f32(value: float) -> float:
+    """The value a BEAR stores: rounded to float32."""
+    return struct.unpack("<f", struct.pack("<f", value))[0]
+
+
+@dataclass(frozen=True)
+class MotorCommand:
+    """What a BEAR has been told, for the physics adapter."""
+
+    id: int
+    mode: int
+    torque_enable: int  # as read: 0 off, 1 on, 2 error (output off), 3 damping
+    goal_position: float
+    goal_velocity: float
+    goal_iq: float
+    goal_id: float
+    error: int
+
+
+class _Bear:
+    """One actuator: config and status register files, flash, and the flags behind its error byte."""
+
+    def __init__(self, device_id: int, now: float):
+        self.config = {name: _f32(v) if CONFIG_REGISTERS[name].kind == "f32" else v
+                       for name, v in DEFAULT_CONFIG.items()}
+        self.config["id"] = device_id
+        self.flash = dict(self.config)
+        self.status = {name: _f32(v) if STATUS_REGISTERS[name].kind == "f32" else v
+                       for name, v in DEFAULT_STATUS.items()}
+        self.enable = 0  # the 0/1 last written to torque_enable
+        self.damping = False  # torque_enable = 3 written, or watchdog expiry; left by writing 0 or 1
+        self.estop = False  # external E-stop input
+        self.latched = 0  # injected error bits, cleared by writing torque_enable = 0
+        self.comm_warning = False
+        self.silent = False
+        self.last_rx = now
+
+    @property
+    def id(self) -> int:
+        return int(self.config["id"])
+
+    def error_byte(self) -> int:
+        c, s = self.config, self.status
+        error = ERROR_OK | self.latched
+        if self.comm_warning:
+            error |= BearError.COMMUNICATION
+        if self.estop or self.damping:
+            error |= BearError.WATCHDOG_ESTOP
+        if max(s["winding_temperature"], s["powerstage_temperature"], s["ic_temperature"]) > c["temp_limit_low"]:
+            error |= BearError.OVERHEAT
+        if not c["min_voltage"] <= s["input_voltage"] <= c["max_voltage"]:
+            error |= BearError.HARDWARE
+        low, high = c["limit_position_min"], c["limit_position_max"]
+        if low < high and not low <= s["present_position"] <= high:
+            error |= BearError.JOINT_LIMIT
+        return int(error)
+
+    def torque_enable(self) -> int:
+        if self.estop or self.damping:
+            return TorqueEnable.DAMPING
+        if self.enable == TorqueEnable.ENABLED and self.error_byte() & FAULT_BITS & ~BearError.WATCHDOG_ESTOP:
+            return TorqueEnable.ERROR
+        return self.enable
+
+    def value(self, register: Register) -> int | float:
+        if register.table == "config":
+            return self.config[register.name]
+        if register.name == "torque_enable":
+            return self.torque_enable()
+        if register.name == "error_status":
+            return self.error_byte() & FAULT_BITS
+        if register.name == "warning_status":
+            return self.error_byte() & WARNING_BITS
+        return self.status[register.name]
+
+    def read(self, by_address: dict[int, Register], addresses: bytes) -> bytes:
+        data = bytearray()
+        for address in addresses:
+            register = by_address.get(address)
+            if register is None:
+                self.comm_warning = True
+                data += bytes(4)
+            else:
+                data += struct.pack("<" + register.fmt, self.value(register))
+        return bytes(data)
+
+    def write_status(self, address: int, raw: bytes) -> None:
+        register = STATUS_BY_ADDRESS.get(address)
+        if register is None or not register.writable:
+            self.comm_warning = True
+            return
+        value = struct.unpack("<" + register.fmt, raw)[0]
+        if register.name != "torque_enable":
+            self.status[register.name] = value
+        elif value == TorqueEnable.DISABLED:
+            self.enable, self.damping, self.latched = 0, False, 0
+        elif value == TorqueEnable.ENABLED:
+            self.enable, self.damping = 1, False
+        elif value == TorqueEnable.DAMPING:
+            self.damping = True
+        else:  # 2 is only ever read; a float-encoded 1.0 (0x3F800000) lands here too
+            self.comm_warning = True
+
+    def write_config(self, pairs: list[tuple[int, bytes]], taken: set[int]) -> None:
+        if self.torque_enable() != TorqueEnable.DISABLED:
+            return  # the whole packet is refused while torque is enabled
+        for address, raw in pairs:
+            register = CONFIG_BY_ADDRESS.get(address)
+            if register is None:
+                self.comm_warning = True
+                continue
+            value = struct.unpack("<" + register.fmt, raw)[0]
+            refused = (register.name == "mode" and value > 3) or \
+                (register.name == "id" and (value > MAX_DEVICE_ID or (value in taken and value != self.id)))
+            if refused:
+                self.comm_warning = True
+            else:
+                self.config[register.name] = value
+
+    def check_watchdog(self, now: float) -> None:
+        timeout_ms = self.config["watchdog_timeout"]
+        if (timeout_ms and self.config["mode"] == 0 and self.torque_enable() == TorqueEnable.ENABLED
+                and now - self.last_rx > timeout_ms / 1000.0):
+            self.damping = True
+
+
+class BearBusEmulator:
+    """BEARs with the given IDs on one emulated RS-485 bus. `start()` opens the pty; `handle(bytes) -> bytes` is the
+    same device logic without one (the bytes a host sends in, the bytes the devices answer out)."""
+
+    def __init__(self, ids: Iterable[int] = range(1, 11), name: str = "bear", ping_data: bytes = b"\x01\x01"):
+        self.name = name
+        self.ping_data = bytes(ping_data)
+        self.stats = LinkStats()  # what the devices received: packets, and rejected bytes by reason
+        self.requests: Counter[str] = Counter()  # instruction name -> packets handled
+        self._lock = threading.RLock()
+        now = time.monotonic()
+        self._bears = {int(i): _Bear(int(i), now) for i in ids}
+        if any(not 0 <= i <= MAX_DEVICE_ID for i in self._bears):
+            raise ValueError(f"BEAR IDs are 0..{MAX_DEVICE_ID}")
+        self._rx = bytearray()
+        self._rx_time = 0.0
+        self._corruptions: list[tuple[str, int | None]] = []
+        self._pty: PtyDevice | None = None
+
+    # -- lifecycle --
+    def start(self) -> BearBusEmulator:
+        if self._pty is None:
+            self._pty = PtyDevice(self.name, self._on_bytes).start()
+        return self
+
+    @property
+    def path(self) -> str:
+        if self._pty is None:
+            raise RuntimeError("start() the emulator first")
+        return self._pty.path
+
+    def close(self) -> None:
+        if self._pty is not None:
+            self._pty.close()
+
+    def __enter__(self) -> BearBusEmulator:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def ids(self) -> tuple[int, ...]:
+        with self._lock:
+            return tuple(sorted(self._bears))
+
+    # -- fault injection --
+    def silence(self, ids: Iterable[int], silent: bool = True) -> None:
+        """These BEARs stop answering (and applying) anything, as if unplugged; `silent=False` brings them back."""
+        with self._lock:
+            for device_id in ids:
+                self._bears[device_id].silent = silent
+
+    def set_error(self, device_id: int, bit: int | BearError, on: bool = True) -> None:
+        """Raise (or drop) an error bit: a bit number 0-6 or a BearError. Bit 3 is the E-stop input (held until
+        dropped); bit 0 is reported once; the others latch until torque_enable = 0 is written."""
+        mask = int(bit) if isinstance(bit, BearError) else 1 << int(bit)
+        with self._lock:
+            bear = self._bears[device_id]
+            if mask & BearError.WATCHDOG_ESTOP:
+                bear.estop = on
+            if mask & BearError.COMMUNICATION:
+                bear.comm_warning = on
+            rest = mask & ~(BearError.WATCHDOG_ESTOP | BearError.COMMUNICATION) & 0x7F
+            bear.latched = bear.latched | rest if on else bear.latched & ~rest
+
+    def set_estop(self, on: bool = True, ids: Iterable[int] | None = None) -> None:
+        """The external E-stop input of these BEARs (all by default)."""
+        for device_id in self.ids if ids is None else ids:
+            self.set_error(device_id, BearError.WATCHDOG_ESTOP, on)
+
+    def corrupt_next_reply(self, kind: str = "checksum", device_id: int | None = None) -> None:
+        """Spoil the next reply (of `device_id`, or of anyone): "checksum" (bad last byte), "truncate" (half a
+        packet), "garbage" (noise with a false header before it), "foreign" (a valid packet from ID 0xFD before it),
+        "drop" (no reply). One call spoils one reply."""
+        if kind not in CORRUPTIONS:
+            raise ValueError(f"corruption is one of {CORRUPTIONS}")
+        with self._lock:
+            self._corruptions.append((kind, device_id))
+
+    # -- physics adapter --
+    def set_measured(self, device_id: int, position: float, velocity: float, iq: float) -> None:
+        with self._lock:
+            status = self._bears[device_id].status
+            status["present_position"], status["present_velocity"], status["present_iq"] = \
+                _f32(position), _f32(velocity), _f32(iq)
+
+    def set_measured_many(self, ids: Sequence[int], positions, velocities, iqs) -> None:
+        with self._lock:
+            for device_id, p, v, i in zip(ids, np.asarray(positions, float), np.asarray(velocities, float),
+                                          np.asarray(iqs, float), strict=True):
+                self.set_measured(device_id, float(p), float(v), float(i))
+
+    def command(self, device_id: int) -> MotorCommand:
+        with self._lock:
+            bear = self._bears[device_id]
+            bear.check_watchdog(time.monotonic())
+            s = bear.status
+            return MotorCommand(bear.id, int(bear.config["mode"]), bear.torque_enable(), s["goal_position"],
+                                s["goal_velocity"], s["goal_iq"], s["goal_id"], bear.error_byte())
+
+    def commands(self, ids: Sequence[int] | None = None) -> dict[str, np.ndarray]:
+        """Arrays in `ids` order (default: sorted IDs): mode, torque_enable, goal_position, goal_velocity,
+        goal_iq, goal_id, error."""
+        with self._lock:
+            rows = [self.command(i) for i in (self.ids if ids is None else ids)]
+        out = {name: np.array([getattr(r, name) for r in rows], dtype=np.float64)
+               for name in ("goal_position", "goal_velocity", "goal_iq", "goal_id")}
+        for name in ("mode", "torque_enable"):
+            out[name] = np.array([getattr(r, name) for r in rows], dtype=np.int64)
+        out["error"] = np.array([r.error for r in rows], dtype=np.uint8)
+        return out
+
+    def register_value(self, device_id: int, name: str, table: str = "status") -> int | float:
+        """A register as the bus would read it."""
+        registers = CONFIG_REGISTERS if table == "config" else STATUS_REGISTERS
+        with self._lock:
+            return self._bears[device_id].value(registers[name])
+
+    def set_register_value(self, device_id: int, name: str, value: int | float, table: str = "status") -> None:
+        """Set a register directly (temperatures, voltage, limits...), past the bus rules; not torque_enable."""
+        registers = CONFIG_REGISTERS if table == "config" else STATUS_REGISTERS
+        register = registers[name]
+        if name in ("torque_enable", "error_status", "warning_status") or (table == "config" and name == "id"):
+            raise ValueError(f"{name} follows the device state; it is not set directly")
+        with self._lock:
+            bear = self._bears[device_id]
+            files = bear.config if table == "config" else bear.status
+            files[name] = _f32(float(value)) if register.kind == "f32" else int(value)
+
+    def saved_config(self, device_id: int) -> dict[str, int | float]:
+        """The config registers as last stored in flash by SAVE_CFG."""
+        with self._lock:
+            return dict(self._bears[device_id].flash)
+
+    def power_cycle(self, ids: Iterable[int] | None = None) -> None:
+        """Restart these BEARs: config from flash, status registers and flags back to power-on values."""
+        with self._lock:
+            for device_id in list(self.ids if ids is None else ids):
+                old = self._bears.pop(device_id)
+                bear = _Bear(int(old.flash["id"]), time.monotonic())
+                bear.config, bear.flash = dict(old.flash), dict(old.flash)
+                bear.estop, bear.silent = old.estop, old.silent  # wiring, not state
+                self._bears[bear.id] = bear
+
+    # -- the wire --
+    def _on_bytes(self, data: bytes) -> None:
+        reply = self.handle(data)
+        if reply and self._pty is not None:
+            self._pty.send(reply)
+
+    def handle(self, data: bytes) -> bytes:
+        """Bytes from the host in, the devices' answer out (b"" when nobody answers)."""
+        with self._lock:
+            now = time.monotonic()
+            if self._rx and now - self._rx_time > STALE_RX_S:
+                self.stats.reject("truncated")
+                self._rx.clear()
+            self._rx_time = now
+            self._rx += data
+            for bear in self._bears.values():
+                bear.check_watchdog(now)
+            out = bytearray()
+            for device_id, code, params in self._frames():
+                out += self._execute(device_id, code, params, now)
+            return bytes(out)
+
+    def _frames(self):
+        """Complete, checksum-valid packets from the receive buffer; resynchronises on FF FF after garbage."""
+        buf = self._rx
+        while True:
+            start = buf.find(HEADER)
+            if start < 0:
+                keep = 1 if buf.endswith(b"\xff") else 0
+                if len(buf) > keep:
+                    self.stats.reject("garbage")
+                    del buf[:len(buf) - keep]
+                return
+            if start:
+                self.stats.reject("garbage")
+                del buf[:start]
+            if len(buf) < 4:
+                return
+            device_id, length = buf[2], buf[3]
+            if device_id == 0xFF or length < 2:
+                self.stats.reject("garbage" if device_id == 0xFF else "length")
+                del buf[:1]
+                continue
+            total = 4 + length
+            if len(buf) < total:
+                return
+            if checksum(buf[2:total - 1]) != buf[total - 1]:
+                self.stats.reject("checksum")
+                bear = self._bears.get(device_id)
+                if bear is not None:
+                    bear.comm_warning = True
+                del buf[:1]
+                continue
+            frame = bytes(buf[:total])
+            del buf[:total]
+            self.stats.packets += 1
+            yield device_id, frame[4], frame[5:-1]
+
+    def _execute(self, device_id: int, code: int, params: bytes, now: float) -> bytes:
+        if code & 0x80:
+            return b""  # another device's status packet on the bus: not an instruction
+        try:
+            instruction = Instruction(code)
+        except ValueError:
+            instruction = None
+        self.requests[instruction.name if instruction else f"0x{code:02X}"] += 1
+        if instruction is Instruction.BULK_COMM:
+            return self._bulk(params, now) if device_id == BROADCAST_ID else b""
+        if device_id == BROADCAST_ID:
+            targets = [b for b in self._bears.values() if not b.silent]
+        else:
+            bear = self._bears.get(device_id)
+            targets = [] if bear is None or bear.silent else [bear]
+        out = b""
+        for bear in targets:
+            bear.last_rx = now
+            data = None
+            if instruction is Instruction.PING and not params:
+                data = self.ping_data
+            elif instruction is Instruction.READ_STAT and 4 * len(params) <= MAX_PARAMS:
+                data = bear.read(STATUS_BY_ADDRESS, params)
+            elif instruction is Instruction.READ_CFG and 4 * len(params) <= MAX_PARAMS:
+                data = bear.read(CONFIG_BY_ADDRESS, params)
+            elif instruction in (Instruction.WRITE_STAT, Instruction.WRITE_CFG) and params and len(params) % 5 == 0:
+                pairs = [(params[k], params[k + 1:k + 5]) for k in range(0, len(params), 5)]
+                if instruction is Instruction.WRITE_STAT:
+                    for address, raw in pairs:
+                        bear.write_status(address, raw)
+                else:
+                    bear.write_config(pairs, taken=set(self._bears))
+            elif instruction is Instruction.SAVE_CFG and not params:
+                if bear.torque_enable() == TorqueEnable.DISABLED:
+                    bear.flash = dict(bear.config)
+            else:  # malformed, unknown or unsupported (SET_POSITION: battery-backed BEARs only)
+                bear.comm_warning = True
+            if data is not None and device_id != BROADCAST_ID:
+                out = self._reply(bear, data)
+        self._rekey()
+        return out
+
+    def _bulk(self, params: bytes, now: float) -> bytes:
+        if len(params) < 2:
+            self.stats.reject("bulk_length")
+            return b""
+        n_motors, n_read, n_write = params[0], params[1] >> 4, params[1] & 0x0F
+        head, stride = 2 + n_read + n_write, 1 + 4 * n_write
+        if len(params) != head + n_motors * stride:
+            self.stats.reject("bulk_length")
+            return b""
+        reads, writes = params[2:2 + n_read], params[2 + n_read:head]
+        out = bytearray()
+        for k in range(n_motors):
+            entry = params[head + k * stride:head + (k + 1) * stride]
+            bear = self._bears.get(entry[0])
+            if bear is None or bear.silent:
+                continue
+            bear.last_rx = now
+            for j, address in enumerate(writes):
+                bear.write_status(address, entry[1 + 4 * j:5 + 4 * j])
+            if n_read:
+                out += self._reply(bear, bear.read(STATUS_BY_ADDRESS, reads))
+        return bytes(out)
+
+    def _reply(self, bear: _Bear, data: bytes) -> bytes:
+        packet = encode_status(bear.id, bear.error_byte(), data)
+        bear.comm_warning = False  # reported: the warning resets
+        for k, (kind, target) in enumerate(self._corruptions):
+            if target is None or target == bear.id:
+                del self._corruptions[k]
+                return _spoil(packet, kind)
+        return packet
+
+    def _rekey(self) -> None:
+        if any(bear.id != key for key, bear in self._bears.items()):
+            self._bears = {bear.id: bear for bear in self._bears.values()}
+
+
+def _spoil(packet: bytes, kind: str) -> bytes:
+    if kind == "checksum":
+        return packet[:-1] + bytes((packet[-1] ^ 0xFF,))
+    if kind == "truncate":
+        return packet[:len(packet) // 2]
+    if kind == "garbage":  # noise with a lone FF, then a false header claiming ID 1 and LEN 2
+        return b"\x00\x55\xff\x13\xff\xff\x01\x02" + packet
+    if kind == "foreign":  # a well-formed reply from an ID nobody asked
+        return encode_status(0xFD, ERROR_OK, packet[5:-1]) + packet
+    return b""  # drop

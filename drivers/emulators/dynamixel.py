@@ -1,0 +1,606 @@
+"""A Dynamixel Protocol 2.0 bus of X-series servos on a pseudo-terminal, byte-exact to the ROBOTIS protocol, so that
+ROBOTIS' own dynamixel-sdk (or any other spec-following host) opens `path` as if it were a U2D2 / USB adapter.
+
+Wire: header FF FF FD 00, ID, LEN (little-endian, after stuffing, CRC included), instruction, parameters (byte
+stuffing FF FF FD -> FF FF FD FD in both directions), CRC-16 (polynomial 0x8005) over everything before it. Status
+packets carry instruction 0x55 and the error byte (bit 7 Alert, low bits an error number).
+
+Instructions: PING (model number + firmware version), READ, WRITE, REG_WRITE, ACTION, FACTORY_RESET (0xFF / 0x01 /
+0x02), REBOOT, CLEAR, SYNC_READ, SYNC_WRITE, BULK_READ, BULK_WRITE. Anything else addressed to one of our IDs is
+answered with Instruction Error; FAST_SYNC_READ / FAST_BULK_READ are not emulated.
+
+Choices where the sources are silent (BRUCE's exact model is not stated anywhere):
+
+* Model: XM430-W350 (model number 1020), firmware version 52; its Protocol 2.0 control table (EEPROM 0..63, RAM
+  64..147, Indirect Address 1..28 at 168..222 -> Indirect Data 1..28 at 224..251, Indirect Address 29..56 at
+  578..632 -> Indirect Data 29..56 at 634..661). Reserved gaps read as 0 and refuse writes (Access Error).
+* Access rules: writes to read-only items, to gaps, beyond the table, and to EEPROM (0..63) while Torque Enable is 1
+  are refused with Access Error and nothing is written; out-of-range values (ID, baud, operating mode, torque
+  enable, status return level, gains, indirect addresses) with Data Range Error; goal position outside
+  [min, max position limit] in position mode with Data Limit Error. A packet is applied all or nothing.
+* Indirect Address items are RAM (writable with torque on), as in the X-series table.
+* Torque on sets goal position = present position (no jump). With a hardware error whose bit is in Shutdown (63)
+  torque goes off and a write of Torque Enable = 1 is answered with Result Fail until REBOOT.
+* A packet with a bad CRC addressed to one of our IDs is answered with CRC Error; a partial packet is dropped when
+  no byte arrives for `frame_gap_s` (an inter-byte timeout).
+* SYNC_READ / BULK_READ replies follow the order of the request; a silent servo is skipped and the others still
+  answer. Replies are immediate (Return Delay Time is stored, not waited). Baud rate writes are stored, not applied.
+* Without a physics adapter (`track_goals=True`) present position jumps to the goal while torque is on, so the bus
+  behaves as ideal servos; a physics adapter constructs with `track_goals=False` and writes present values itself.
+
+Thread-safe accessors for a physics adapter (every 1 ms): `set_present`, `set_joint_state`, `goal_position`,
+`goal_joint_positions`, `torque_enabled`, `torque_enabled_all`. Faults for tests: `silence`, `set_hardware_error`,
+`corrupt_replies`, `clear_faults`.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.dynamixel import (
+    ARM_IDS,
+    ARM_SIGNS,
+    BROADCAST_ID,
+    ERR_ACCESS,
+    ERR_CRC,
+    ERR_DATA_LENGTH,
+    ERR_DATA_LIMIT,
+    ERR_DATA_RANGE,
+    ERR_INSTRUCTION,
+    ERR_RESULT_FAIL,
+    ERROR_ALERT,
+    INST_ACTION,
+    INST_BULK_READ,
+    INST_BULK_WRITE,
+    INST_CLEAR,
+    INST_FACTORY_RESET,
+    INST_PING,
+    INST_READ,
+    INST_REBOOT,
+    INST_REG_WRITE,
+    INST_STATUS,
+    INST_SYNC_READ,
+    INST_SYNC_WRITE,
+    INST_WRITE,
+    MAX_ID,
+    POSITION_UNIT,
+    Packet,
+    PacketParser,
+    counts_to_joint,
+    encode_hardware_error,
+    encode_status,
+    joint_velocity_to_counts,
+)
+from drivers.emulators.pty_device import PtyDevice
+from drivers.errors import LinkStats
+
+XM430_W350 = 1020
+FIRMWARE_VERSION = 52
+TABLE_SIZE = 662
+EEPROM_END = 64
+
+
+@dataclass(frozen=True, slots=True)
+class Item:
+    address: int
+    size: int
+    name: str
+    writable: bool
+    default: int
+    signed: bool = False
+    valid: tuple[int, int] | frozenset | None = None   # accepted values of a write: (lo, hi) or a set
+
+    @property
+    def eeprom(self) -> bool:
+        return self.address < EEPROM_END
+
+
+def _items(model_number: int, firmware: int) -> list[Item]:
+    gain = (0, 16383)
+    items = [
+        Item(0, 2, "model_number", False, model_number),
+        Item(2, 4, "model_information", False, 0),
+        Item(6, 1, "firmware_version", False, firmware),
+        Item(7, 1, "id", True, 1, valid=(0, MAX_ID)),
+        Item(8, 1, "baud_rate", True, 1, valid=(0, 7)),
+        Item(9, 1, "return_delay_time", True, 250),
+        Item(10, 1, "drive_mode", True, 0),
+        Item(11, 1, "operating_mode", True, 3, valid=frozenset({0, 1, 3, 4, 5, 16})),
+        Item(12, 1, "secondary_id", True, 255),
+        Item(13, 1, "protocol_type", True, 2, valid=frozenset({1, 2})),
+        Item(20, 4, "homing_offset", True, 0, signed=True, valid=(-1044479, 1044479)),
+        Item(24, 4, "moving_threshold", True, 10, valid=(0, 1023)),
+        Item(31, 1, "temperature_limit", True, 80, valid=(0, 100)),
+        Item(32, 2, "max_voltage_limit", True, 160, valid=(95, 160)),
+        Item(34, 2, "min_voltage_limit", True, 95, valid=(95, 160)),
+        Item(36, 2, "pwm_limit", True, 885, valid=(0, 885)),
+        Item(38, 2, "current_limit", True, 1193, valid=(0, 1193)),
+        Item(44, 4, "velocity_limit", True, 200, valid=(0, 1023)),
+        Item(48, 4, "max_position_limit", True, 4095, valid=(0, 4095)),
+        Item(52, 4, "min_position_limit", True, 0, valid=(0, 4095)),
+        Item(60, 1, "startup_configuration", True, 0),
+        Item(63, 1, "shutdown", True, 52),
+        Item(64, 1, "torque_enable", True, 0, valid=(0, 1)),
+        Item(65, 1, "led", True, 0, valid=(0, 1)),
+        Item(68, 1, "status_return_level", True, 2, valid=(0, 2)),
+        Item(69, 1, "registered_instruction", False, 0),
+        Item(70, 1, "hardware_error_status", False, 0),
+        Item(76, 2, "velocity_i_gain", True, 1920, valid=gain),
+        Item(78, 2, "velocity_p_gain", True, 100, valid=gain),
+        Item(80, 2, "position_d_gain", True, 0, valid=gain),
+        Item(82, 2, "position_i_gain", True, 0, valid=gain),
+        Item(84, 2, "position_p_gain", True, 800, valid=gain),
+        Item(88, 2, "feedforward_2nd_gain", True, 0, valid=gain),
+        Item(90, 2, "feedforward_1st_gain", True, 0, valid=gain),
+        Item(98, 1, "bus_watchdog", True, 0),
+        Item(100, 2, "goal_pwm", True, 885, signed=True),
+        Item(102, 2, "goal_current", True, 1193, signed=True),
+        Item(104, 4, "goal_velocity", True, 0, signed=True),
+        Item(108, 4, "profile_acceleration", True, 0, valid=(0, 32767)),
+        Item(112, 4, "profile_velocity", True, 0, valid=(0, 32767)),
+        Item(116, 4, "goal_position", True, 2048, signed=True),
+        Item(120, 2, "realtime_tick", False, 0),
+        Item(122, 1, "moving", False, 0),
+        Item(123, 1, "moving_status", False, 0),
+        Item(124, 2, "present_pwm", False, 0, signed=True),
+        Item(126, 2, "present_current", False, 0, signed=True),
+        Item(128, 4, "present_velocity", False, 0, signed=True),
+        Item(132, 4, "present_position", False, 2048, signed=True),
+        Item(136, 4, "velocity_trajectory", False, 0, signed=True),
+        Item(140, 4, "position_trajectory", False, 0, signed=True),
+        Item(144, 2, "present_input_voltage", False, 120),
+        Item(146, 1, "present_temperature", False, 30),
+        Item(147, 1, "backup_ready", False, 0),
+    ]
+    for block, (addr0, data0) in enumerate(((168, 224), (578, 634))):
+        for k in range(28):
+            n = block * 28 + k + 1
+            items.append(Item(addr0 + 2 * k, 2, f"indirect_address_{n}", True, data0 + k, valid=(64, TABLE_SIZE - 1)))
+            items.append(Item(data0 + k, 1, f"indirect_data_{n}", True, 0))
+    return items
+
+
+INDIRECT_DATA = {**{224 + k: 168 + 2 * k for k in range(28)}, **{634 + k: 578 + 2 * k for k in range(28)}}
+
+
+class XSeriesServo:
+    """One servo's control table and instruction semantics. Not locked: the bus emulator holds its lock."""
+
+    def __init__(self, dxl_id: int, model_number: int = XM430_W350, firmware: int = FIRMWARE_VERSION,
+                 track_goals: bool = True):
+        self.items = {item.name: item for item in _items(model_number, firmware)}
+        self.owner: list[Item | None] = [None] * TABLE_SIZE
+        for item in self.items.values():
+            for a in range(item.address, item.address + item.size):
+                self.owner[a] = item
+        self.table = bytearray(TABLE_SIZE)
+        self.track_goals = track_goals
+        self._registered: tuple[int, bytes] | None = None
+        self._reset(keep=())
+        self._put("id", dxl_id)
+
+    # -- raw access --------------------------------------------------------------------------------------------
+    def get(self, name: str, table: bytearray | None = None) -> int:
+        item = self.items[name]
+        raw = (self.table if table is None else table)[item.address:item.address + item.size]
+        return int.from_bytes(raw, "little", signed=item.signed)
+
+    def _put(self, name: str, value: int) -> None:
+        item = self.items[name]
+        bits = 8 * item.size
+        self.table[item.address:item.address + item.size] = (int(value) & ((1 << bits) - 1)).to_bytes(item.size,
+                                                                                                       "little")
+
+    @property
+    def id(self) -> int:
+        return self.table[7]
+
+    @property
+    def torque(self) -> bool:
+        return bool(self.table[64])
+
+    @property
+    def alert(self) -> int:
+        return ERROR_ALERT if self.table[70] else 0
+
+    def _reset(self, keep: Iterable[str]) -> None:
+        kept = {name: self.get(name) for name in keep}
+        for item in self.items.values():
+            self._put(item.name, item.default)
+        for name, value in kept.items():
+            self._put(name, value)
+        self._registered = None
+
+    def _target(self, address: int) -> int:
+        """Indirect Data resolves to the byte its Indirect Address names."""
+        ref = INDIRECT_DATA.get(address)
+        if ref is None:
+            return address
+        return int.from_bytes(self.table[ref:ref + 2], "little")
+
+    # -- instructions ------------------------------------------------------------------------------------------
+    def read(self, address: int, length: int) -> tuple[int, bytes]:
+        """(error number, data)."""
+        if address + length > TABLE_SIZE:
+            return ERR_ACCESS, b""
+        self._put("realtime_tick", int(time.monotonic() * 1000) % 32768)
+        return 0, bytes(self.table[self._target(a)] for a in range(address, address + length))
+
+    def check_write(self, address: int, data: bytes) -> tuple[int, bytearray | None]:
+        """(error number, the table after the write) without changing anything."""
+        if not data:
+            return ERR_DATA_LENGTH, None
+        if address + len(data) > TABLE_SIZE:
+            return ERR_ACCESS, None
+        new = bytearray(self.table)
+        touched: set[str] = set()
+        for offset, byte in enumerate(data):
+            target = self._target(address + offset)
+            item = self.owner[target] if 0 <= target < TABLE_SIZE else None
+            if item is None or not item.writable or (item.eeprom and self.torque):
+                return ERR_ACCESS, None
+            new[target] = byte
+            touched.add(item.name)
+        for name in touched:
+            valid, value = self.items[name].valid, self.get(name, new)
+            if isinstance(valid, tuple) and not valid[0] <= value <= valid[1] or \
+                    isinstance(valid, frozenset) and value not in valid:
+                return ERR_DATA_RANGE, None
+        if "goal_position" in touched and self.get("operating_mode", new) == 3:
+            goal = self.get("goal_position", new)
+            if not self.get("min_position_limit", new) <= goal <= self.get("max_position_limit", new):
+                return ERR_DATA_LIMIT, None
+        if "torque_enable" in touched and new[64] and not self.torque and self.table[70] & self.table[63]:
+            return ERR_RESULT_FAIL, None
+        return 0, new
+
+    def write(self, address: int, data: bytes) -> int:
+        error, new = self.check_write(address, data)
+        if error:
+            return error
+        torque_on = new[64] and not self.torque
+        self.table[:] = new
+        if torque_on:
+            self._put("goal_position", self.get("present_position"))
+        if self.track_goals and self.torque:
+            self._put("present_position", self.get("goal_position"))
+            self._put("present_velocity", 0)
+        return 0
+
+    def reg_write(self, address: int, data: bytes) -> int:
+        error, _ = self.check_write(address, data)
+        if not error:
+            self._registered = (address, bytes(data))
+            self._put("registered_instruction", 1)
+        return error
+
+    def action(self) -> int:
+        if self._registered is None:
+            return 0
+        address, data = self._registered
+        self._registered = None
+        self._put("registered_instruction", 0)
+        return self.write(address, data)
+
+    def reboot(self) -> None:
+        """RAM back to its initial values; EEPROM kept; hardware errors cleared."""
+        self._reset(keep=[item.name for item in self.items.values() if item.eeprom] + ["present_position"])
+
+    def factory_reset(self, option: int) -> None:
+        keep = {0xFF: [], 0x01: ["id"], 0x02: ["id", "baud_rate"]}[option]
+        self._reset(keep=keep + ["present_position"])
+
+    def set_hardware_error(self, bits: int) -> None:
+        self._put("hardware_error_status", bits)
+        if bits & self.table[63]:
+            self._put("torque_enable", 0)
+
+
+class DynamixelBusEmulator:
+    """X-series servos with the given IDs on one pty (see the module docstring)."""
+
+    def __init__(self, ids: Sequence[int] = ARM_IDS, *, signs: Sequence[float] | None = None,
+                 model_number: int = XM430_W350, firmware: int = FIRMWARE_VERSION, track_goals: bool = True,
+                 frame_gap_s: float = 0.01, name: str = "dynamixel"):
+        ids = tuple(int(i) for i in ids)
+        if not ids or len(set(ids)) != len(ids) or not all(0 <= i <= MAX_ID for i in ids):
+            raise ValueError(f"ids must be unique servo IDs in 0..{MAX_ID}, got {ids}")
+        self.ids = ids
+        if signs is None:
+            signs = ARM_SIGNS if ids == ARM_IDS else (1.0,) * len(ids)
+        self.signs = np.asarray(signs, dtype=np.float64)
+        self.servos = [XSeriesServo(i, model_number, firmware, track_goals) for i in ids]
+        self.name = name
+        self.frame_gap_s = frame_gap_s
+        self.stats = LinkStats()
+        self._parser = PacketParser(self.stats)
+        self._lock = threading.RLock()
+        self._silent: set[int] = set()
+        self._corrupt: dict[int, list] = {}       # id -> [mode, remaining or None]
+        self._last_rx = 0.0
+        self._pty: PtyDevice | None = None
+
+    # -- transport ---------------------------------------------------------------------------------------------
+    def start(self) -> DynamixelBusEmulator:
+        self._pty = PtyDevice(self.name, self._on_bytes).start()
+        return self
+
+    @property
+    def path(self) -> str:
+        if self._pty is None:
+            raise RuntimeError("emulator not started")
+        return self._pty.path
+
+    def close(self) -> None:
+        if self._pty is not None:
+            self._pty.close()
+            self._pty = None
+
+    def __enter__(self) -> DynamixelBusEmulator:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _on_bytes(self, data: bytes) -> None:
+        now = time.monotonic()
+        with self._lock:
+            if self._parser.pending and now - self._last_rx > self.frame_gap_s:
+                self._parser.discard()
+            self._last_rx = now
+        reply = self.handle(data)
+        if reply and self._pty is not None:
+            self._pty.send(reply)
+
+    def handle(self, data: bytes) -> bytes:
+        """Bytes from the host -> the bytes the servos answer (the pty thread calls this; tests may call it too)."""
+        with self._lock:
+            out = []
+            for packet in self._parser.feed(data):
+                out += self._process(packet)
+            for dxl_id in self._parser.take_crc_failures():
+                servo = self._servo(dxl_id)
+                if servo is not None:
+                    out.append(self._status(servo, ERR_CRC))
+            return b"".join(out)
+
+    # -- dispatch ----------------------------------------------------------------------------------------------
+    def _servo(self, dxl_id: int) -> XSeriesServo | None:
+        """The answering servo with that ID (None when absent or silenced)."""
+        for servo in self.servos:
+            if servo.id == dxl_id:
+                return None if dxl_id in self._silent else servo
+        return None
+
+    def _live(self) -> list[XSeriesServo]:
+        return sorted((s for s in self.servos if s.id not in self._silent), key=lambda s: s.id)
+
+    def _status(self, servo: XSeriesServo, error: int, data: bytes = b"", dxl_id: int | None = None) -> bytes:
+        dxl_id = servo.id if dxl_id is None else dxl_id
+        packet = encode_status(dxl_id, error | servo.alert, data)
+        fault = self._corrupt.get(dxl_id)
+        if fault is None:
+            return packet
+        mode, remaining = fault
+        if remaining is not None:
+            fault[1] -= 1
+            if fault[1] <= 0:
+                del self._corrupt[dxl_id]
+        if mode == "crc":
+            return packet[:-1] + bytes([packet[-1] ^ 0xFF])
+        if mode == "truncate":
+            return packet[:len(packet) // 2]
+        if mode == "noise":
+            return b"\x00\xff\x55\xaa\xff\xff\x13" + packet
+        return encode_status((dxl_id + 100) % (MAX_ID + 1), error | servo.alert, data)   # "foreign"
+
+    def _process(self, packet: Packet) -> list[bytes]:
+        ins, params = packet.instruction, packet.params
+        if ins == INST_STATUS:
+            self.stats.reject("foreign")  # another device's reply; servos only take instructions
+            return []
+        if ins in (INST_SYNC_READ, INST_SYNC_WRITE, INST_BULK_READ, INST_BULK_WRITE):
+            return self._group(packet) if packet.id == BROADCAST_ID else []
+        if packet.id == BROADCAST_ID:
+            targets, broadcast = self._live(), True
+        else:
+            servo = self._servo(packet.id)
+            if servo is None:
+                if packet.id not in self._silent:
+                    self.stats.reject("foreign")
+                return []
+            targets, broadcast = [servo], False
+        out = []
+        for servo in targets:
+            level = servo.get("status_return_level")
+            error, data = self._instruction(servo, ins, params)
+            if ins == INST_PING or (not broadcast and (level == 2 or (ins == INST_READ and level >= 1))):
+                out.append(self._status(servo, error, data))   # from the old ID, before any reset
+            if ins in (INST_REBOOT, INST_FACTORY_RESET) and not error:
+                if ins == INST_REBOOT:
+                    servo.reboot()
+                else:
+                    servo.factory_reset(params[0])
+        return out
+
+    def _instruction(self, servo: XSeriesServo, ins: int, params: bytes) -> tuple[int, bytes]:
+        """One servo executes one instruction: (error number, status data). REBOOT / FACTORY_RESET are validated
+        here and carried out by the caller after the reply is built."""
+        if ins == INST_PING:
+            return 0, bytes(servo.table[0:2] + servo.table[6:7])
+        if ins == INST_READ:
+            if len(params) != 4:
+                return ERR_DATA_LENGTH, b""
+            return servo.read(params[0] | params[1] << 8, params[2] | params[3] << 8)
+        if ins in (INST_WRITE, INST_REG_WRITE):
+            if len(params) < 3:
+                return ERR_DATA_LENGTH, b""
+            write = servo.write if ins == INST_WRITE else servo.reg_write
+            return write(params[0] | params[1] << 8, params[2:]), b""
+        if ins == INST_ACTION:
+            return servo.action(), b""
+        if ins == INST_REBOOT:
+            return 0, b""
+        if ins == INST_FACTORY_RESET:
+            if len(params) != 1:
+                return ERR_DATA_LENGTH, b""
+            return (0 if params[0] in (0xFF, 0x01, 0x02) else ERR_DATA_RANGE), b""
+        if ins == INST_CLEAR:
+            # Clears the multi-turn revolution count: present position back into one turn.
+            servo._put("present_position", servo.get("present_position") % 4096)
+            return 0, b""
+        return ERR_INSTRUCTION, b""
+
+    def _group(self, packet: Packet) -> list[bytes]:
+        """SYNC_/BULK_ READ and WRITE (broadcast): replies in the order of the request."""
+        ins, p = packet.instruction, packet.params
+        out: list[bytes] = []
+        if ins in (INST_SYNC_READ, INST_SYNC_WRITE):
+            if len(p) < 4:
+                self.stats.reject("length")
+                return out
+            address, length, rest = p[0] | p[1] << 8, p[2] | p[3] << 8, p[4:]
+            if ins == INST_SYNC_READ:
+                for dxl_id in rest:
+                    servo = self._servo(dxl_id)
+                    if servo is not None:
+                        error, data = servo.read(address, length)
+                        out.append(self._status(servo, error, data))
+                return out
+            if length == 0 or len(rest) % (1 + length):
+                self.stats.reject("length")
+                return out
+            for k in range(0, len(rest), 1 + length):
+                servo = self._servo(rest[k])
+                if servo is not None:
+                    servo.write(address, rest[k + 1:k + 1 + length])
+            return out
+        if ins == INST_BULK_READ:
+            if len(p) % 5:
+                self.stats.reject("length")
+                return out
+            for k in range(0, len(p), 5):
+                servo = self._servo(p[k])
+                if servo is not None:
+                    error, data = servo.read(p[k + 1] | p[k + 2] << 8, p[k + 3] | p[k + 4] << 8)
+                    out.append(self._status(servo, error, data))
+            return out
+        k = 0   # BULK_WRITE: (ID, address, length, data) repeated
+        while k + 5 <= len(p):
+            dxl_id, address, length = p[k], p[k + 1] | p[k + 2] << 8, p[k + 3] | p[k + 4] << 8
+            data = p[k + 5:k + 5 + length]
+            if len(data) != length:
+                self.stats.reject("length")
+                break
+            servo = self._servo(dxl_id)
+            if servo is not None:
+                servo.write(address, data)
+            k += 5 + length
+        return out
+
+    # -- accessors for a physics adapter (thread-safe) ---------------------------------------------------------
+    @property
+    def track_goals(self) -> bool:
+        """True: ideal servos (present position jumps to the goal while torque is on). A physics adapter sets it
+        False (or constructs with track_goals=False) and writes the measured values itself."""
+        return all(servo.track_goals for servo in self.servos)
+
+    @track_goals.setter
+    def track_goals(self, value: bool) -> None:
+        with self._lock:
+            for servo in self.servos:
+                servo.track_goals = bool(value)
+
+    def _by_id(self, dxl_id: int) -> XSeriesServo:
+        for servo in self.servos:
+            if servo.id == dxl_id:
+                return servo
+        raise KeyError(f"no servo with ID {dxl_id} on {self.name} (IDs {[s.id for s in self.servos]})")
+
+    def set_present(self, dxl_id: int, position: float | None = None, velocity: float | None = None,
+                    unit: str = "counts") -> None:
+        """Measured values of one servo. unit "counts": raw register values; "rad": shaft angle in rad
+        (0..2*pi, 2048 counts = pi) and shaft velocity in rad/s."""
+        if unit not in ("counts", "rad"):
+            raise ValueError(f"unit must be 'counts' or 'rad', got {unit!r}")
+        with self._lock:
+            servo = self._by_id(dxl_id)
+            if position is not None:
+                counts = position / POSITION_UNIT if unit == "rad" else position
+                servo._put("present_position", int(round(counts)))
+            if velocity is not None:
+                counts = joint_velocity_to_counts(np.array([velocity]), np.ones(1))[0] if unit == "rad" else velocity
+                servo._put("present_velocity", int(round(counts)))
+
+    def set_joint_state(self, q: Sequence[float], qd: Sequence[float] | None = None) -> None:
+        """Measured joint positions (rad) and velocities (rad/s) in the order of `ids`, through the driver's joint
+        convention (servo angle = sign * q + pi)."""
+        q = np.asarray(q, dtype=np.float64)
+        qd = np.zeros_like(q) if qd is None else np.asarray(qd, dtype=np.float64)
+        if q.shape != (len(self.ids),) or qd.shape != q.shape:
+            raise ValueError(f"expected {len(self.ids)} joint values, got {q.shape} and {qd.shape}")
+        positions = self.signs * q + math.pi
+        velocities = self.signs * qd
+        with self._lock:
+            for dxl_id, position, velocity in zip(self.ids, positions, velocities, strict=True):
+                self.set_present(dxl_id, position, velocity, unit="rad")
+
+    def goal_position(self, dxl_id: int, unit: str = "counts") -> float:
+        with self._lock:
+            counts = self._by_id(dxl_id).get("goal_position")
+        return counts * POSITION_UNIT if unit == "rad" else counts
+
+    def goal_joint_positions(self) -> np.ndarray:
+        """Goal positions in joint rad, in the order of `ids`."""
+        with self._lock:
+            counts = np.array([self._by_id(i).get("goal_position") for i in self.ids])
+        return counts_to_joint(counts, self.signs)
+
+    def torque_enabled(self, dxl_id: int) -> bool:
+        with self._lock:
+            return self._by_id(dxl_id).torque
+
+    def torque_enabled_all(self) -> np.ndarray:
+        with self._lock:
+            return np.array([self._by_id(i).torque for i in self.ids])
+
+    def item(self, dxl_id: int, name: str) -> int:
+        """Any control table item of one servo, by its snake_case name (e.g. "position_p_gain")."""
+        with self._lock:
+            return self._by_id(dxl_id).get(name)
+
+    # -- faults for tests --------------------------------------------------------------------------------------
+    def silence(self, ids: Iterable[int], silent: bool = True) -> None:
+        """Servos that neither answer nor act (unplugged); `silent=False` brings them back."""
+        with self._lock:
+            (self._silent.update if silent else self._silent.difference_update)(int(i) for i in ids)
+
+    def set_hardware_error(self, dxl_id: int, flags: Sequence[str] | int) -> None:
+        """Hardware Error Status of one servo (flag names or raw bits): every status packet it sends then has the
+        Alert bit, and torque goes off for bits in Shutdown (63). REBOOT clears it."""
+        bits = flags if isinstance(flags, int) else encode_hardware_error(flags)
+        with self._lock:
+            self._by_id(dxl_id).set_hardware_error(bits)
+
+    def corrupt_replies(self, ids: Iterable[int] | None = None, mode: str = "crc", count: int | None = None) -> None:
+        """Corrupt the next `count` (None: all) status packets of `ids` (None: every servo). Modes: "crc" (bad CRC),
+        "truncate" (first half only), "noise" (garbage before a valid packet), "foreign" (another ID)."""
+        if mode not in ("crc", "truncate", "noise", "foreign"):
+            raise ValueError(f"unknown corruption mode {mode!r}")
+        with self._lock:
+            for dxl_id in (self.ids if ids is None else ids):
+                self._corrupt[int(dxl_id)] = [mode, count]
+
+    def clear_faults(self) -> None:
+        """Everyone answers again, uncorrupted, with hardware errors cleared."""
+        with self._lock:
+            self._silent.clear()
+            self._corrupt.clear()
+            for servo in self.servos:
+                servo._put("hardware_error_status", 0)

@@ -1,0 +1,311 @@
+"""Physics behind the emulators: BRUCE's MuJoCo model (the mock backend's, `bruce_hw.mock.MujocoBackend`) stepped
+at 1 kHz in real time on a thread, so that the hw backend talks to emulated devices that move like the robot.
+
+Each physics step (`Plant.step`):
+1. what the leg actuators were told, read from the BEAR emulator (mode, torque_enable, goals) or the CAN motor
+   emulators (their MIT-mode torque), becomes actuator torques, then joint torques through the coupling
+   (tau_q = B^-T tau_m); the mock saturates them per actuator and steps the model by one loop period;
+2. the measured state goes back: actuator positions and velocities (m = B^-1 q) and current (iq = tau_m / kt, from
+   the torque the model applied) to the BEARs or the CAN motors, IMU specific force, gyro and the four contact
+   switches to the sense board, and every 20th step the arm joints to the Dynamixel emulator.
+
+Choices (the emulators leave these to the adapter):
+- BEAR torque per mode, while torque_enable reads 1: torque (0) kt * clip(goal_iq, +-limit_i_max); force (3)
+  p_gain_force (goal_position - m) + d_gain_force (goal_velocity - md) + kt goal_iq, clipped to kt limit_i_max,
+  with the gains taken as Nm/rad and Nm s/rad; position (2) the same PD with the position gains; velocity (1)
+  p_gain_velocity (goal_velocity - md). Damping (torque_enable 3): -safety.damping_kd md per actuator. Off (0) or
+  error (2): no torque. Config registers are re-read every 100 steps.
+- The operator: until a leg actuator is first enabled the robot is held still at the standing pose, feet on the
+  floor (physics paused, the IMU reads +g, every contact switch closed), as on the stand or in the hands before
+  start-up; once every leg actuator reads disabled again (the next start-up disables them) it is put back there
+  and held. In damping the physics runs: the robot sinks as it would.
+- Arms are locked in the model (as in the paper); the Dynamixel emulator (track_goals=False) sees each servo with
+  torque on follow its goal with a first-order lag of `arm_time_constant_s`, starting from the zero pose.
+- Real time: steps are paced on time.monotonic(); after a stall of more than 10 steps the lost time is dropped
+  (counted in `skipped_steps`), never run in a burst.
+
+`EmulatedRobot` starts the emulators a config describes (BEAR or CAN legs, Dynamixel arms, sense board) with a
+plant driving them; `bruce-emulate` (drivers/emulators/cli.py) is its command line.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from bruce_hw.config import RobotConfig
+from bruce_hw.mock import MujocoBackend
+from bruce_hw.types import GroundTruth, JointCommand
+
+GRAVITY = 9.80665
+REGISTER_REFRESH_STEPS = 100
+ARM_EVERY_STEPS = 20          # the arm bus runs at 50 Hz
+MAX_CATCH_UP_STEPS = 10
+BEAR_GAIN_REGISTERS = ("limit_i_max", "p_gain_force", "d_gain_force", "p_gain_position", "d_gain_position",
+                       "p_gain_velocity")
+
+
+class Plant:
+    """The MuJoCo model behind the emulators given (any may be None). `start()` steps it in real time on a
+    thread; without it, `step()` advances one loop period (for tests that want no thread)."""
+
+    def __init__(self, config: RobotConfig, *, bear=None, dynamixel=None, sense=None, can: dict | None = None,
+                 arm_time_constant_s: float = 0.05):
+        self.config = config
+        self.bear, self.dynamixel, self.sense = bear, dynamixel, sense
+        self.can = dict(can or {})
+        self.sim = MujocoBackend(config)
+        self.sim.configure()
+        self.sim.activate()
+        self.dt = config.dt
+        self.n = config.n_joints
+        self.kt = config.torque_per_amp
+        self.damping_kd = config.safety.damping_kd
+        self.coupling = config.coupling
+        self.bear_ids = list(config.buses.bear.ids)
+        self._can_slots = self._can_layout() if self.can else []
+        self._registers: dict[str, np.ndarray] = {}
+        self.arm_q = np.zeros(len(config.arms.names))
+        self.arm_qd = np.zeros_like(self.arm_q)
+        self.arm_time_constant_s = arm_time_constant_s
+        self.held = True
+        self.steps = 0                # physics steps run
+        self.late_steps = 0           # steps started more than one period late
+        self.skipped_steps = 0        # steps dropped after stalls
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._hold()
+
+    # -- lifecycle ---------------------------------------------------------------------------------------------
+    def start(self) -> Plant:
+        self._thread = threading.Thread(target=self._run, name="plant", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+
+    def __enter__(self) -> Plant:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _run(self) -> None:
+        next_step = time.monotonic()
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if now < next_step:
+                time.sleep(next_step - now)
+                continue
+            behind = now - next_step
+            if behind > self.dt:
+                self.late_steps += 1
+                if behind > MAX_CATCH_UP_STEPS * self.dt:
+                    missed = int(behind / self.dt)
+                    self.skipped_steps += missed
+                    next_step += missed * self.dt
+            self.step()
+            next_step += self.dt
+
+    # -- the operator ------------------------------------------------------------------------------------------
+    def place(self) -> None:
+        """Put the robot back at the standing pose and hold it there until a leg actuator is enabled."""
+        with self._lock:
+            self._hold()
+
+    def _hold(self) -> None:
+        self.sim.place(self.config.standing_pose)
+        self.held = True
+        self._publish_legs(self.config.standing_pose, np.zeros(self.n), np.zeros(self.n))
+        if self.sense is not None:
+            self.sense.set_measurement(accel=(0.0, 0.0, GRAVITY), gyro=(0.0, 0.0, 0.0), contacts=(True,) * 4)
+
+    def ground_truth(self) -> GroundTruth:
+        with self._lock:
+            return self.sim.ground_truth()
+
+    @property
+    def nominal_base_height(self) -> float:
+        return self.sim.nominal_base_height
+
+    # -- one step ----------------------------------------------------------------------------------------------
+    def step(self) -> None:
+        with self._lock:
+            tau_m, enabled, all_off = self._actuator_torques()
+            if self.held:
+                if enabled:
+                    self.held = False
+            elif all_off:
+                self._hold()
+            if not self.held:
+                self.sim.write(JointCommand(tau_ff=self.coupling.joint_torques(tau_m)))
+                state = self.sim.read()  # saturates per actuator through the coupling, steps the model
+                q, qd = state.joints.q, state.joints.qd
+                applied = self.coupling.actuator_torques(state.joints.tau)
+                self._publish_legs(q, qd, applied)
+                if self.sense is not None:
+                    self.sense.set_measurement(accel=state.imu.accel, gyro=state.imu.gyro,
+                                               contacts=state.contacts.contact)
+            if self.dynamixel is not None and self.steps % ARM_EVERY_STEPS == 0:
+                self._step_arms(ARM_EVERY_STEPS * self.dt)
+            self.steps += 1
+
+    def _actuator_torques(self) -> tuple[np.ndarray, bool, bool]:
+        """Actuator torques (coupling column order), whether any leg actuator is enabled, whether all are off."""
+        if self.can:
+            return self._can_torques()
+        if self.bear is None:
+            return np.zeros(self.n), False, True
+        if self.steps % REGISTER_REFRESH_STEPS == 0 or not self._registers:
+            self._registers = {name: np.array([self.bear.register_value(i, name, "config") for i in self.bear_ids])
+                               for name in BEAR_GAIN_REGISTERS}
+        c = self.bear.commands(self.bear_ids)
+        r = self._registers
+        m, md = self._m, self._md
+        limit = self.kt * r["limit_i_max"]
+        mode, on = c["mode"], c["torque_enable"]
+        tau = np.zeros(self.n)
+        tau = np.where(mode == 0, self.kt * c["goal_iq"], tau)
+        tau = np.where(mode == 3, r["p_gain_force"] * (c["goal_position"] - m)
+                       + r["d_gain_force"] * (c["goal_velocity"] - md) + self.kt * c["goal_iq"], tau)
+        tau = np.where(mode == 2, r["p_gain_position"] * (c["goal_position"] - m) - r["d_gain_position"] * md, tau)
+        tau = np.where(mode == 1, r["p_gain_velocity"] * (c["goal_velocity"] - md), tau)
+        tau = np.nan_to_num(np.clip(tau, -limit, limit))
+        tau = np.where(on == 1, tau, np.where(on == 3, -self.damping_kd * md, 0.0))
+        return tau, bool(np.any(on == 1)), bool(np.all(on == 0))
+
+    def _publish_legs(self, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> None:
+        m, md = self.coupling.actuator_positions(q), self.coupling.actuator_positions(qd)
+        self._m, self._md = m, md  # what the actuators measure, for their own PD (force/position modes)
+        if self.bear is not None:
+            self.bear.set_measured_many(self.bear_ids, m, md, tau_m / self.kt)
+        for slot in self._can_slots:
+            slot.emulator.set_state(slot.map.motor_position(m[slot.index]), slot.map.motor_velocity(md[slot.index]))
+
+    # -- CAN legs ----------------------------------------------------------------------------------------------
+    def _can_layout(self) -> list[_CanSlots]:
+        from drivers.can_motor import ActuatorMap
+
+        motors = list(self.config.buses.can.motors)
+        slots = []
+        for channel, emulator in self.can.items():
+            index = [k for k, motor in enumerate(motors) if motor.channel == channel]
+            if [motors[k].id for k in index] != list(emulator.motor_ids):
+                raise ValueError(f"CAN emulator on {channel} hosts {emulator.motor_ids}, the config puts "
+                                 f"{[motors[k].id for k in index]} there")
+            mine = [motors[k] for k in index]
+            amap = ActuatorMap.of(len(mine), [m.gear for m in mine], [m.sign for m in mine], [m.offset for m in mine])
+            slots.append(_CanSlots(emulator, np.array(index), amap))
+        return slots
+
+    def _can_torques(self) -> tuple[np.ndarray, bool, bool]:
+        tau = np.zeros(self.n)
+        engaged = False
+        for slot in self._can_slots:
+            tau[slot.index] = slot.map.actuator_torque(slot.emulator.torques())
+            engaged |= any(slot.emulator.in_motor_mode(mid) for mid in slot.emulator.motor_ids)
+        return tau, engaged, not engaged
+
+    # -- arms --------------------------------------------------------------------------------------------------
+    def _step_arms(self, dt: float) -> None:
+        goal = self.dynamixel.goal_joint_positions()
+        on = self.dynamixel.torque_enabled_all()
+        share = 1.0 - math.exp(-dt / self.arm_time_constant_s)
+        step = np.where(on, (goal - self.arm_q) * share, 0.0)
+        self.arm_q = self.arm_q + step
+        self.arm_qd = step / dt
+        self.dynamixel.set_joint_state(self.arm_q, self.arm_qd)
+
+
+@dataclass
+class _CanSlots:
+    emulator: object
+    index: np.ndarray
+    map: object
+
+
+@dataclass
+class EmulatedRobot:
+    """Every device a config describes, emulated, with a plant driving them. CAN motors go on python-can's
+    `can_interface` (default "virtual": reachable from this process only)."""
+
+    config: RobotConfig
+    sense_command_poll_s: float = 0.05
+    can_interface: str = "virtual"
+    bear: object = None
+    dynamixel: object = None
+    sense: object = None
+    can: dict = field(default_factory=dict)
+    plant: Plant | None = None
+
+    def start(self) -> EmulatedRobot:
+        from drivers.emulators.dynamixel import DynamixelBusEmulator
+        from drivers.emulators.sense import SenseBoardEmulator
+
+        cfg = self.config
+        try:
+            if cfg.buses.can.motors:
+                from drivers.emulators.can_motor import emulators_from_config
+
+                self.can = emulators_from_config(cfg.buses.can, interface=self.can_interface)
+            else:
+                from drivers.emulators.bear import BearBusEmulator
+
+                self.bear = BearBusEmulator(cfg.buses.bear.ids).start()
+            self.dynamixel = DynamixelBusEmulator(cfg.buses.dynamixel.ids, track_goals=False).start()
+            # The real firmware reads commands once a second while streaming; a shorter poll keeps repeated
+            # start-ups and shutdowns from waiting that second each.
+            self.sense = SenseBoardEmulator(command_poll_s=self.sense_command_poll_s).start()
+            self.plant = Plant(cfg, bear=self.bear, dynamixel=self.dynamixel, sense=self.sense,
+                               can=self.can).start()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def close(self) -> None:
+        if self.plant is not None:
+            self.plant.close()
+        for device in (self.bear, self.dynamixel, self.sense, *self.can.values()):
+            if device is not None:
+                device.close()
+
+    def __enter__(self) -> EmulatedRobot:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def port_overrides(self) -> list[str]:
+        """`KEY=VALUE` config overrides that point the hw backend at these emulators."""
+        out = []
+        if self.bear is not None:
+            out.append(f"buses.bear.port={self.bear.path}")
+        out += [f"buses.dynamixel.port={self.dynamixel.path}", f"buses.sense.port={self.sense.path}"]
+        if self.can:
+            out.append(f"buses.can.interface={self.can_interface}")
+        return out
+
+    def devices(self) -> list[tuple[str, str]]:
+        """(what, where) of every emulated device, for people."""
+        cfg = self.config
+        out = []
+        if self.bear is not None:
+            out.append((f"BEAR bus (IDs {_ids(cfg.buses.bear.ids)})", self.bear.path))
+        for channel, emulator in self.can.items():
+            out.append((f"CAN motors (IDs {_ids(emulator.motor_ids)})", f"{self.can_interface} channel {channel}"))
+        out.append((f"Dynamixel bus (IDs {_ids(cfg.buses.dynamixel.ids)})", self.dynamixel.path))
+        out.append(("sense board", self.sense.path))
+        return out
+
+
+def _ids(ids) -> str:
+    return ", ".join(str(i) for i in ids)
