@@ -37,6 +37,8 @@ class MujocoBackend(Backend):
         self.data: mujoco.MjData | None = None
         self._command: JointCommand | None = None
         self.estop_pressed = False  # the mock's emergency-stop input, reported in every RobotState
+        self._push_force = np.zeros(3)
+        self._push_until = -1.0
 
     # -- lifecycle ---------------------------------------------------------------------------------------
     def _on_configure(self) -> None:
@@ -119,6 +121,15 @@ class MujocoBackend(Backend):
         data.qpos[self._qpos] = q
         mujoco.mj_forward(self.model, data)
         self._command = None
+        self._push_until = -1.0  # mj_resetData cleared the applied force
+
+    def push(self, impulse: np.ndarray, duration: float = 0.1) -> None:
+        """Push the base: a constant world-frame force impulse / duration (N) on the base's centre of mass for the
+        next `duration` s of simulated time, as a disturbance for tests and training."""
+        if duration <= 0.0:
+            raise ValueError(f"mock backend: push duration must be > 0 s, got {duration}")
+        self._push_force = np.asarray(impulse, dtype=float) / duration
+        self._push_until = float(self.data.time) + duration
 
     # -- per tick ----------------------------------------------------------------------------------------
     def _motor_torque(self) -> np.ndarray:
@@ -136,6 +147,11 @@ class MujocoBackend(Backend):
     def _read(self) -> RobotState:
         data = self.data
         data.ctrl[self._acts] = self._motor_torque()  # the model's motors clamp to the joint box limits
+        if self._push_until >= 0.0:
+            pushing = data.time < self._push_until - 1e-9
+            data.xfrc_applied[self._base, :3] = self._push_force if pushing else 0.0
+            if not pushing:
+                self._push_until = -1.0
         mujoco.mj_step(self.model, data)
         t = data.time
         s = data.sensordata

@@ -8,7 +8,8 @@ from runtime.standing import StandingController
 
 def test_mock_stands_for_10_s_within_2_cm_of_the_nominal_height(config, tmp_path):
     backend = make_backend("mock", config)
-    summary = run_session(backend, config, duration=10.0, realtime=False, stats_path=tmp_path / "s.json")
+    summary = run_session(backend, config, duration=10.0, realtime=False, stats_path=tmp_path / "s.json",
+                          controller_kind="standing")
     truth = summary.truth
     assert summary.ticks == 10_000 and truth.sim_time == pytest.approx(10.0, abs=0.002)
     assert not truth.fell

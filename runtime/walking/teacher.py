@@ -41,13 +41,13 @@ from runtime.walking.leg_ik import SIDES, leg_geometry, leg_ik
 @dataclass(frozen=True)
 class TeacherParams:
     standing_height: float = 0.400   # m, base origin above the stance ankle
-    com_height: float = 0.370        # m, CoM above the sole for the pendulum's omega
+    com_height: float = 0.358        # m, CoM above the sole for the pendulum's omega
     step_width: float = 0.110        # m, nominal lateral distance between the ankles
     foot_centre: float = 0.0075      # m, middle of the toe/heel line ahead of the ankle
-    swing_apex: float = 0.025        # m, swing ankle height at mid-swing
+    swing_apex: float = 0.029        # m, swing ankle height at mid-swing
     swing_landing: float = -0.004    # m, the swing ends this far below the ground, so the foot lands
-    swing_horizontal_end: float = 0.85  # share of the swing by which the foot is over its landing point
-    replan_until: float = 0.80       # share of the swing after which the landing point is frozen
+    swing_horizontal_end: float = 0.771  # share of the swing by which the foot is over its landing point
+    replan_until: float = 0.897       # share of the swing after which the landing point is frozen
     reach_forward: float = 0.22      # m, ankle ahead of / behind the stance ankle at most
     width_min: float = 0.09          # m, lateral ankle distance at least (no crossing)
     width_max: float = 0.26          # m, ... at most
@@ -55,16 +55,18 @@ class TeacherParams:
     ankle_position_gain: float = 2.0  # ankle torque per m of CoM offset, in units of m g (must exceed 1)
     ankle_velocity_gain: float = 0.3  # s
     cop_gain: float = 2.0            # centre-of-pressure shift per m of DCM error (single stance)
-    cop_front: float = 0.015         # m ahead of the foot centre at most (the toe is 0.0425 ahead)
-    cop_back: float = 0.015          # m behind it at most (the heel is 0.0425 behind)
+    cop_front: float = 0.008         # m ahead of the foot centre at most (the toe is 0.0425 ahead)
+    cop_back: float = 0.008          # m behind it at most (the heel is 0.0425 behind)
     heading_lead_max: float = 0.3    # rad, how far the desired heading may lead the measured one
+    heading_correction_max: float = 0.02  # rad of stance hip yaw per tick: more twists the foot past its friction
     command_acceleration: tuple[float, float, float] = (0.5, 0.5, 1.0)  # m/s^2, m/s^2, rad/s^2
     velocity_integral_gain: float = 0.3  # 1/s, on the error of the base's velocity in the heading frame
     velocity_bias_max: float = 0.3   # m/s
     # Extra stiffness, as a multiple of Eq. 8's Kp, added through a_t (a sampled 100 Hz loop around the 1 kHz PD):
-    stance_stiffness_boost: float = 0.5  # stance hips and knee
+    stance_stiffness_boost: float = 0.471  # stance hips and knee
     swing_stiffness_boost: float = 0.25  # swing hips and knee
-    swing_ankle_boost: float = 1.0       # swing ankle: Eq. 8's ankle (2.5 Nm/rad, 0.35 Nm s/rad) is too slow to
+    swing_inertia_gain: float = 0.332  # share of the swing leg's inertial torque M q''_des fed forward
+    swing_ankle_boost: float = 0.45       # swing ankle: Eq. 8's ankle (2.5 Nm/rad, 0.35 Nm s/rad) is too slow to
                                          # level the foot before it lands
 
 
@@ -94,6 +96,8 @@ class WalkingTeacher:
         self.jacp = np.zeros((3, self.model.nv))
         self.jacr = np.zeros((3, self.model.nv))
         self.gravity = np.zeros(self.model.nv)
+        self.qacc = np.zeros(self.model.nv)
+        self.inertial = np.zeros(self.model.nv)
         # Extra stiffness per joint, for both feet down (start-up) and for each stance leg.
         self.boost = {stance_legs: self._boost(stance_legs) for stance_legs in ((0, 1), (0,), (1,))}
         self.reset(config.standing_pose)
@@ -128,6 +132,7 @@ class WalkingTeacher:
         kin.qpos[self.qpos] = q
         mujoco.mj_kinematics(self.model, kin)
         mujoco.mj_comPos(self.model, kin)
+        mujoco.mj_crb(self.model, kin)  # the joint-space inertia M(q), for the swing leg's feed-forward
         mujoco.mj_rne(self.model, kin, 0, self.gravity)  # at rest: the fixed-base gravity load of every joint
 
     def _support_torque(self, leg: int, share: float, com: np.ndarray) -> np.ndarray:
@@ -226,7 +231,9 @@ class WalkingTeacher:
             target = ankles[stance].copy()
             target[2] = -p.standing_height
             # The stance foot is fixed in the world, so turning it by the heading error turns the base back.
-            stance_yaw = float(q[self.leg_joints[stance][0]]) + math.remainder(yaw - self.heading, math.tau)
+            heading_error = math.remainder(yaw - self.heading, math.tau)
+            heading_error = min(p.heading_correction_max, max(-p.heading_correction_max, heading_error))
+            stance_yaw = float(q[self.leg_joints[stance][0]]) + heading_error
             q_des[self.leg_joints[stance]] = self._stance_ik(stance, target, yaw, stance_yaw)
             tau_ff[self.leg_joints[stance]] = self._support_torque(stance, 1.0, com)
             tau_ff[self.leg_joints[swing]] = self.gravity[self.dofs[self.leg_joints[swing]]]
@@ -241,20 +248,32 @@ class WalkingTeacher:
             ankle_torque[self.leg_joints[stance][4]] = -self.mg * (cop + p.foot_centre)
             # Footstep from the DCM.
             if tau_s <= p.replan_until:
-                self.landing = self._landing(ankles[stance], centre, dcm, yaw, phase.t_remaining, swing, vx, vy, wz)
+                self.landing = self._landing(ankles[stance], centre, dcm, self.heading, phase.t_remaining, swing,
+                                             vx, vy, wz)
             # Swing trajectory relative to the stance ankle, then into the base frame at the measured attitude.
             # Land turned by half a step's turn ahead of the heading, so the stance foot turns symmetrically.
             swing_yaw_end = math.remainder(self.heading + wz * (phase.t_remaining + 0.5 * self.step_time) - yaw,
                                            math.tau)
-            rel, rel_rate = self._swing_point(tau_s)
-            target = ankles[stance] + rel
-            yaw_blend, dyaw = min_jerk(tau_s)
-            swing_yaw = self.swing_yaw0 + yaw_blend * (swing_yaw_end - self.swing_yaw0)
-            q_sw = self._swing_ik(swing, rot, target, yaw, swing_yaw)
-            ahead = self._swing_ik(swing, rot, target + rel_rate * 1e-3, yaw, swing_yaw)
-            q_des[self.leg_joints[swing]] = q_sw
-            qd_des[self.leg_joints[swing]] = (np.array(ahead) - q_sw) / 1e-3
-            qd_des[self.leg_joints[swing][0]] = dyaw * (swing_yaw_end - self.swing_yaw0) / self.step_time
+            legs = self.leg_joints[swing]
+
+            def swing_joints(dt: float) -> np.ndarray:
+                """Swing-leg joint targets dt from now: the stance ankle moves by -v dt relative to the base."""
+                s = tau_s + dt / self.step_time
+                yaw_blend, _ = min_jerk(s)
+                target = ankles[stance] - com_velocity * dt + self._swing_point(s)
+                return np.array(self._swing_ik(swing, rot, target, yaw,
+                                               self.swing_yaw0 + yaw_blend * (swing_yaw_end - self.swing_yaw0)))
+
+            # Joint targets, rates and accelerations by central differences over one policy period; the
+            # accelerations give the inertial feed-forward M q'' that the low Eq. 8 gains cannot supply in time.
+            h = self.dt
+            q_sw, q_next, q_prev = swing_joints(0.0), swing_joints(h), swing_joints(-h)
+            q_des[legs] = q_sw
+            qd_des[legs] = (q_next - q_prev) / (2 * h)
+            self.qacc[:] = 0.0
+            self.qacc[self.dofs[legs]] = (q_next - 2 * q_sw + q_prev) / (h * h)
+            mujoco.mj_mulM(self.model, kin, self.inertial, self.qacc)
+            tau_ff[legs] += p.swing_inertia_gain * self.inertial[self.dofs[legs]]
         # Extra stiffness on top of Eq. 8's: a further Kp * boost * (q_des - q) through a_t.
         a = q_des + self.boost[stance_legs] * (q_des - q) + (tau_ff + self.kd * qd_des) / self.kp
         torque_source = ~np.isnan(ankle_torque)
@@ -283,18 +302,14 @@ class WalkingTeacher:
         lat = sign * min(p.width_max, max(p.width_min, sign * lat))
         return np.array([ch * fwd - sh * lat, sh * fwd + ch * lat, 0.0])
 
-    def _swing_point(self, s: float) -> tuple[np.ndarray, np.ndarray]:
-        """Swing ankle relative to the stance ankle at swing share s, and its rate (per second)."""
+    def _swing_point(self, s: float) -> np.ndarray:
+        """Swing ankle relative to the stance ankle at swing share s."""
         p = self.params
-        T = self.step_time
-        h, dh = min_jerk(s / p.swing_horizontal_end)
-        dh /= p.swing_horizontal_end
-        z, dz = swing_height(s, p.swing_apex, p.swing_landing)
+        h, _ = min_jerk(s / p.swing_horizontal_end)
+        z, _ = swing_height(s, p.swing_apex, p.swing_landing)
         rel = self.liftoff + h * (self.landing - self.liftoff)
         rel[2] = self.liftoff[2] * (1.0 - h) + z
-        rate = dh * (self.landing - self.liftoff) / T
-        rate[2] = (-self.liftoff[2] * dh + dz) / T
-        return rel, rate
+        return rel
 
     def _stance_ik(self, leg: int, target_world, yaw: float, hip_yaw: float):
         """IK for a stance ankle target given relative to the base in world axes, for an upright base with the

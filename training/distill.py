@@ -1,0 +1,304 @@
+"""Distil the walking teacher into a small MLP policy by DAgger, and export it to ONNX for the runtime.
+
+    python -m training.distill --out configs/robots/policies/bruce_walk.onnx [--seed 0] [--rounds N] ...
+
+The student sees exactly what the runtime's policy sees: the paper's Table I observation built by
+`runtime.policy.ObservationBuilder` (clock, command, q, q', base linear and angular velocity, Euler angles, last
+action) and outputs a_t, which goes through the same Eq. 8 PD and safety filter at 1 kHz in the MuJoCo mock.
+
+DAgger (Ross et al. 2011): round 0 rolls out the teacher; in round k the executed action is the teacher's with
+probability beta_k = beta_decay^k, else the student's, and the teacher labels every visited state. The dataset
+aggregates all rounds and the student is trained on it after each round. To widen the states it visits, each
+episode samples piecewise-constant velocity commands (ramped, as `runtime.commands` ramps them), pushes the base
+at random and adds noise to the executed actions.
+
+Normalisation is folded into the exported graph (obs -> action in SI units, as the runtime expects). The Euler
+yaw input is masked (weight 0): walking is invariant to the heading, and a policy that read the absolute yaw
+would not generalise to headings its data did not visit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from bruce_hw.config import RobotConfig, load_config
+from bruce_hw.mock import MujocoBackend
+from bruce_hw.types import JointCommand
+from runtime.commands import COMMAND_LIMITS, CommandSchedule
+from runtime.estimation import GroundTruthEstimator, tilt_of
+from runtime.mixing import eq8_torque
+from runtime.policy import ObservationBuilder
+from runtime.safety import SafetyStage
+from runtime.walking.teacher import WalkingTeacher
+
+
+@dataclass(frozen=True)
+class DistillSettings:
+    seed: int = 0
+    rounds: int = 8                       # DAgger rounds after the teacher-only round 0
+    episodes_per_round: int = 24
+    episode_s: float = 10.0
+    segment_s: tuple[float, float] = (2.0, 5.0)        # command segment length, uniform
+    vx: tuple[float, float] = (-0.5, 0.8)               # m/s
+    vy: tuple[float, float] = (-0.2, 0.2)               # m/s
+    wz: tuple[float, float] = (-0.5, 0.5)               # rad/s
+    single_axis_share: float = 0.5         # share of segments that command one axis only (as the test grid does)
+    zero_share: float = 0.1                # share of segments that command standing still
+    push_interval_s: tuple[float, float] = (2.0, 4.0)
+    push_impulse_ns: tuple[float, float] = (0.2, 1.2)  # horizontal impulse on the base, random direction
+    push_duration_s: float = 0.1
+    action_noise_rad: float = 0.02         # Gaussian noise on the executed action
+    beta_decay: float = 0.5
+    hidden: tuple[int, ...] = (256, 256)
+    epochs: int = 20                       # per round, over the aggregated dataset
+    batch_size: int = 1024
+    learning_rate: float = 1e-3
+    fall_height: float = 0.25              # m: an episode ends when the base drops below this or tilts > 45 deg
+    fall_trim_s: float = 0.5               # s of samples dropped before a fall
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+class StudentPolicy(nn.Module):
+    """obs (SI) -> a_t (rad): an ELU MLP between a fixed input normalisation and output scaling."""
+
+    def __init__(self, obs_mean: np.ndarray, obs_scale: np.ndarray, act_mean: np.ndarray, act_scale: np.ndarray,
+                 hidden: tuple[int, ...]):
+        super().__init__()
+        self.register_buffer("obs_mean", torch.as_tensor(obs_mean, dtype=torch.float32))
+        self.register_buffer("obs_scale", torch.as_tensor(obs_scale, dtype=torch.float32))
+        self.register_buffer("act_mean", torch.as_tensor(act_mean, dtype=torch.float32))
+        self.register_buffer("act_scale", torch.as_tensor(act_scale, dtype=torch.float32))
+        layers: list[nn.Module] = []
+        width = len(obs_mean)
+        for h in hidden:
+            layers += [nn.Linear(width, h), nn.ELU()]
+            width = h
+        layers.append(nn.Linear(width, len(act_mean)))
+        self.net = nn.Sequential(*layers)
+
+    def normalised(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.net((obs - self.obs_mean) * self.obs_scale)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.act_mean + self.act_scale * self.normalised(obs)
+
+
+@dataclass
+class Dataset:
+    obs: list[np.ndarray] = field(default_factory=list)
+    actions: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, obs: np.ndarray, actions: np.ndarray) -> None:
+        self.obs.append(obs)
+        self.actions.append(actions)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.concatenate(self.obs), np.concatenate(self.actions)
+
+
+@dataclass
+class EpisodeResult:
+    obs: np.ndarray
+    teacher_actions: np.ndarray
+    seconds: float
+    fell: bool
+
+
+def sample_commands(settings: DistillSettings, rng: np.random.Generator) -> CommandSchedule:
+    """Piecewise-constant commands for one episode, inside the runtime's command limits."""
+    segments = []
+    total = 0.0
+    while total < settings.episode_s:
+        duration = float(rng.uniform(*settings.segment_s))
+        roll = rng.random()
+        cmd = np.zeros(3)
+        ranges = (settings.vx, settings.vy, settings.wz)
+        if roll < settings.zero_share:
+            pass
+        elif roll < settings.zero_share + settings.single_axis_share:
+            axis = int(rng.integers(3))
+            cmd[axis] = rng.uniform(*ranges[axis])
+        else:
+            cmd = np.array([rng.uniform(*r) for r in ranges])
+        for i, (low, high) in enumerate(COMMAND_LIMITS.values()):
+            cmd[i] = min(high, max(low, cmd[i]))
+        segments.append((duration, tuple(float(c) for c in cmd)))
+        total += duration
+    return CommandSchedule(segments, name="sampled commands")
+
+
+def rollout(config: RobotConfig, settings: DistillSettings, rng: np.random.Generator, beta: float,
+            student: StudentPolicy | None) -> EpisodeResult:
+    """One episode in the mock at 1 kHz: the executed a_t is the teacher's with probability beta (per policy tick),
+    else the student's, plus noise; every policy tick is labelled with the teacher's a_t."""
+    backend = MujocoBackend(config)
+    backend.configure()
+    backend.activate()
+    estimator = GroundTruthEstimator(backend)
+    teacher = WalkingTeacher(config)
+    builder = ObservationBuilder(config)
+    safety = SafetyStage(config)
+    commands = sample_commands(settings, rng)
+    robot = backend.read()
+    teacher.reset(robot.joints.q)
+    estimator.reset(robot)
+    last_action = robot.joints.q.copy()  # as runtime.policy.PolicyController starts
+    decimation = config.policy_decimation
+    n_ticks = round(settings.episode_s * config.loop_hz)
+    next_push = float(rng.uniform(*settings.push_interval_s))
+    obs_log, label_log = [], []
+    fell = False
+    a = last_action
+    tick = 0
+    for tick in range(n_ticks):
+        t = tick * config.dt
+        estimator.update(robot)
+        if tick % decimation == 0:
+            base = estimator.estimate()
+            command = commands.at(t)
+            obs = builder.build(tick // decimation / config.policy_hz, command, robot, base, last_action)
+            label = teacher(robot, base, command)
+            obs_log.append(obs)
+            label_log.append(label)
+            if student is not None and rng.random() >= beta:
+                with torch.no_grad():
+                    a = student(torch.as_tensor(obs, dtype=torch.float32)[None])[0].double().numpy()
+            else:
+                a = label
+            a = a + rng.normal(0.0, settings.action_noise_rad, size=a.shape)
+            last_action = a
+        if t >= next_push:
+            angle = rng.uniform(0.0, 2.0 * math.pi)
+            impulse = rng.uniform(*settings.push_impulse_ns)
+            backend.push(np.array([impulse * math.cos(angle), impulse * math.sin(angle), 0.0]),
+                         settings.push_duration_s)
+            next_push = t + float(rng.uniform(*settings.push_interval_s))
+        tau = safety.filter(eq8_torque(a, robot.joints.q, robot.joints.qd, config.eq8), robot)
+        backend.write(JointCommand(tau_ff=tau))
+        robot = backend.read()
+        truth = backend.ground_truth()
+        if truth.base_pos[2] < settings.fall_height or tilt_of(truth.base_quat) > math.pi / 4:
+            fell = True
+            break
+    backend.shutdown()
+    if fell:  # the teacher's labels while falling teach nothing worth copying
+        keep = max(0, len(obs_log) - round(settings.fall_trim_s * config.policy_hz))
+        obs_log, label_log = obs_log[:keep], label_log[:keep]
+    return EpisodeResult(np.array(obs_log).reshape(-1, builder.size), np.array(label_log).reshape(-1, config.n_joints),
+                         (tick + 1) * config.dt, fell)
+
+
+def make_student(config: RobotConfig, settings: DistillSettings, obs: np.ndarray,
+                 actions: np.ndarray) -> StudentPolicy:
+    builder = ObservationBuilder(config)
+    obs_mean = obs.mean(axis=0)
+    obs_scale = 1.0 / np.maximum(obs.std(axis=0), 1e-2)
+    yaw = builder.slices["euler"].start + 2
+    obs_mean[yaw], obs_scale[yaw] = 0.0, 0.0  # heading-invariant: the absolute yaw is not an input
+    return StudentPolicy(obs_mean, obs_scale, actions.mean(axis=0), np.maximum(actions.std(axis=0), 1e-3),
+                         settings.hidden)
+
+
+def train(student: StudentPolicy, obs: np.ndarray, actions: np.ndarray, settings: DistillSettings,
+          generator: torch.Generator) -> float:
+    """Fit the student to the teacher's actions (MSE in the normalised action space); returns the last epoch's loss."""
+    x = torch.as_tensor(obs, dtype=torch.float32)
+    y = (torch.as_tensor(actions, dtype=torch.float32) - student.act_mean) / student.act_scale
+    optimiser = torch.optim.Adam(student.net.parameters(), lr=settings.learning_rate)
+    n = len(x)
+    loss_value = math.nan
+    for epoch in range(settings.epochs):
+        for group in optimiser.param_groups:  # cosine decay within a round
+            group["lr"] = settings.learning_rate * 0.5 * (1.0 + math.cos(math.pi * epoch / settings.epochs))
+        order = torch.randperm(n, generator=generator)
+        total = 0.0
+        for start in range(0, n, settings.batch_size):
+            batch = order[start:start + settings.batch_size]
+            loss = torch.mean((student.normalised(x[batch]) - y[batch]) ** 2)
+            optimiser.zero_grad()
+            loss.backward()
+            optimiser.step()
+            total += float(loss.detach()) * len(batch)
+        loss_value = total / n
+    return loss_value
+
+
+def distill(config: RobotConfig, settings: DistillSettings, log=print) -> tuple[StudentPolicy, list[dict]]:
+    rng = np.random.default_rng(settings.seed)
+    torch.manual_seed(settings.seed)
+    generator = torch.Generator().manual_seed(settings.seed)
+    data = Dataset()
+    student: StudentPolicy | None = None
+    history = []
+    for round_index in range(settings.rounds + 1):
+        beta = settings.beta_decay ** round_index
+        started = time.perf_counter()
+        falls, seconds = 0, 0.0
+        for _ in range(settings.episodes_per_round):
+            episode = rollout(config, settings, rng, beta, student)
+            data.add(episode.obs, episode.teacher_actions)
+            falls += episode.fell
+            seconds += episode.seconds
+        obs, actions = data.arrays()
+        if student is None:
+            student = make_student(config, settings, obs, actions)
+        loss = train(student, obs, actions, settings, generator)
+        record = {"round": round_index, "beta": beta, "episodes": settings.episodes_per_round, "falls": falls,
+                  "sim_s": round(seconds, 1), "samples": len(obs), "loss": round(loss, 5),
+                  "wall_s": round(time.perf_counter() - started, 1)}
+        history.append(record)
+        log(f"distill: round {round_index}: beta {beta:.3f}, {falls}/{settings.episodes_per_round} episodes fell, "
+            f"{len(obs)} samples, loss {loss:.5f}, {record['wall_s']} s")
+    assert student is not None
+    return student, history
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m training.distill", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, required=True, help="ONNX file to write (a .json sidecar goes beside)")
+    parser.add_argument("--config", type=Path, default=None, help="robot config (default: BRUCE's)")
+    defaults = DistillSettings()
+    parser.add_argument("--seed", type=int, default=defaults.seed)
+    parser.add_argument("--rounds", type=int, default=defaults.rounds)
+    parser.add_argument("--episodes", type=int, default=defaults.episodes_per_round, help="episodes per round")
+    parser.add_argument("--episode-s", type=float, default=defaults.episode_s)
+    parser.add_argument("--epochs", type=int, default=defaults.epochs)
+    parser.add_argument("--hidden", type=int, nargs="+", default=list(defaults.hidden), help="MLP layer widths")
+    parser.add_argument("--vx", type=float, nargs=2, default=list(defaults.vx), help="vx command range, m/s")
+    parser.add_argument("--push", type=float, nargs=2, default=list(defaults.push_impulse_ns),
+                        help="push impulse range, N s")
+    args = parser.parse_args(argv)
+    config = load_config(args.config) if args.config else load_config()
+    settings = dataclasses.replace(defaults, seed=args.seed, rounds=args.rounds, episodes_per_round=args.episodes,
+                                   episode_s=args.episode_s, epochs=args.epochs, hidden=tuple(args.hidden),
+                                   vx=tuple(args.vx), push_impulse_ns=tuple(args.push))
+    torch.set_num_threads(1)
+    student, history = distill(config, settings)
+    from training.export import export_mlp_policy_onnx, sidecar_path
+
+    student.eval()
+    path = export_mlp_policy_onnx(student, args.out, ObservationBuilder(config).size, config.n_joints)
+    sidecar = sidecar_path(path)
+    record = json.loads(sidecar.read_text())
+    record["distill"] = {"command": "python -m training.distill " + " ".join(sys.argv[1:] if argv is None else argv),
+                         "config": str(config.path), "settings": settings.to_json(), "history": history}
+    sidecar.write_text(json.dumps(record, indent=2) + "\n")
+    print(f"distill: wrote {path} ({path.stat().st_size / 1024:.0f} kB) and {sidecar}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
