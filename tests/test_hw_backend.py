@@ -36,8 +36,9 @@ def emulator():
 
 @pytest.fixture
 def hw_config(emulator):
-    """The robot config pointed at the emulators; every device answering, no E-stop, the IMU streaming."""
-    for command in (f"answer bear {BEAR_IDS}", f"answer dynamixel {DXL_IDS}", "estop off", "imu start"):
+    """The robot config pointed at the emulators; every device answering, no E-stop, the IMU streaming, the robot
+    back on its feet (the previous test ended in damping, where the emulated robot sinks)."""
+    for command in (f"answer bear {BEAR_IDS}", f"answer dynamixel {DXL_IDS}", "estop off", "imu start", "place"):
         emulator.send(command)
     return load_config(overrides=emulator.overrides)
 
