@@ -656,7 +656,7 @@ class HwBackend(Backend):
                 imu, contacts = self._newer_sense_sample(imu.stamp)
         except BusTimeout as exc:
             raise self._fail(f"sense board {exc}") from exc
-        imu.orientation = self._attitude.update(imu.gyro, imu.accel, imu.stamp)
+        imu.orientation = np.array(self._attitude.update(imu.gyro, imu.accel, imu.stamp))
         joints = JointState(q=self._b @ reading.position, qd=self._b @ reading.velocity,
                             tau=self._tau_q_from_m @ reading.torque, temperature=self._joint_temperature(),
                             stamp=reading.stamp)
