@@ -25,10 +25,16 @@ from runtime.run import run_session
 BEAR_IDS = " ".join(str(i) for i in range(1, 11))
 DXL_IDS = " ".join(str(i) for i in range(11, 17))
 LOOSE_DAMPING_S = 0.05  # the goal is 10 ms; a loaded CI machine gets slack
-# In-process sessions run unpaced: a paced one asks for mlockall, which in a test process that has loaded torch
-# (the distillation tests) stalls the loop for seconds. Paced runs are tested in a process of their own (bruce-run
-# below) and benchmarked in bench/bench_hw_emulated.py.
-REALTIME = False
+REALTIME = True  # paced, as on the robot: an unpaced loop floods the emulators and slows their replies
+
+
+@pytest.fixture(autouse=True)
+def no_memory_lock(monkeypatch):
+    """Paced in-process sessions without mlockall: in a pytest process that has loaded torch (the distillation
+    tests) locking every mapping stalls the loop for seconds. bruce-run, in a process of its own, locks memory."""
+    from runtime import realtime, run
+
+    monkeypatch.setattr(run, "request_realtime", lambda: realtime.request_realtime(lock_memory=False))
 
 
 @pytest.fixture(scope="module")
