@@ -318,6 +318,10 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
             telemetry.start()  # its threads start before the loop thread asks for real-time scheduling
         if realtime:
             grant = summary.realtime_grant = request_realtime()
+        # Collect before the motors are enabled: in a large process a full collection takes up to a second, and
+        # an enabled robot would stand that long on its last (zero) command.
+        gc.collect()
+        gc.freeze()
         backend.activate()
         controller.reset(robot.joints.q)
         estimator.reset(robot)
@@ -329,8 +333,6 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
               f"{' (paced to the wall clock)' if realtime else ''}", flush=True)
         if grant is not None:
             print(f"bruce-run: {grant.text()}", flush=True)
-        gc.collect()
-        gc.freeze()
         gc.disable()
         _loop(backend, config, controller, estimator, commands, pinn_runner, telemetry, summary, stop, duration,
               realtime)

@@ -59,27 +59,6 @@ def test_bruce_emulate_prints_the_command_line(emulator):
     assert keys == ["buses.bear.port", "buses.dynamixel.port", "buses.sense.port"]
 
 
-def test_bruce_run_hw_stands_and_shuts_down_into_damping(emulator, hw_config, tmp_path):
-    stats = tmp_path / "stats.json"
-    argv = ["--backend", "hw", *(w for item in emulator.overrides for w in ("--set", item)), "--duration", "3",
-            "--controller", "standing", "--rerun", "off", "--stats", str(stats)]
-    # A process of its own, as on the robot: threads and real-time settings left by other tests cannot starve it.
-    run = subprocess.run([sys.executable, "-c", "from runtime.cli import main; raise SystemExit(main())", *argv],
-                         capture_output=True, text=True, timeout=60)
-    assert run.returncode == 0, run.stdout + run.stderr
-    summary = json.loads(stats.read_text())
-    assert summary["error"] is None and summary["stop_cause"] == "duration reached", summary
-    assert summary["ticks"] == 3000
-    assert summary["late_share"] < 0.05  # the 1 % goal is benchmarked, not unit-tested
-    status = emulator.status()
-    plant = status["plant"]
-    assert abs(plant["base_height"] - plant["nominal_base_height"]) < 0.05, plant  # standing, not fallen
-    assert status["bear"]["torque_enable"] == [3] * 10      # shutdown: every BEAR damping
-    assert not any(status["dynamixel"]["torque_enabled"])   # arms: torque off on exit, as BRUCE-OP
-    np.testing.assert_allclose(plant["arm_q"], hw_config.arms.hold_pose, atol=0.02)  # they were held
-    assert status["bear"]["bulk_comm"] >= 3000
-
-
 def test_silent_bear_ids_reach_damping_naming_bus_and_ids(emulator, hw_config):
     backend = make_hw_backend(hw_config, check_imu=False)
     inject = FaultAt(emulator, "silence bear 3 4")
@@ -196,3 +175,25 @@ def test_attitude_filter_levels_and_ignores_reaction_spikes():
     for k in range(20, 20000):  # the bias integral settles in ~20 s (poles -0.11, -0.89 1/s)
         quat = f.update(np.zeros(3), tilted, k * 0.001)
     np.testing.assert_allclose(np.arccos(1 - 2 * (quat[1] ** 2 + quat[2] ** 2)), 0.3, atol=0.01)
+
+
+# Last in the module: it ends with the emulated robot in damping, lying down, for whatever runs after it.
+def test_bruce_run_hw_stands_and_shuts_down_into_damping(emulator, hw_config, tmp_path):
+    stats = tmp_path / "stats.json"
+    argv = ["--backend", "hw", *(w for item in emulator.overrides for w in ("--set", item)), "--duration", "3",
+            "--controller", "standing", "--rerun", "off", "--stats", str(stats)]
+    # A process of its own, as on the robot: threads and real-time settings left by other tests cannot starve it.
+    run = subprocess.run([sys.executable, "-c", "from runtime.cli import main; raise SystemExit(main())", *argv],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stdout + run.stderr
+    summary = json.loads(stats.read_text())
+    assert summary["error"] is None and summary["stop_cause"] == "duration reached", summary
+    assert summary["ticks"] == 3000
+    assert summary["late_share"] < 0.05  # the 1 % goal is benchmarked, not unit-tested
+    status = emulator.status()
+    plant = status["plant"]
+    assert abs(plant["base_height"] - plant["nominal_base_height"]) < 0.05, plant  # standing, not fallen
+    assert status["bear"]["torque_enable"] == [3] * 10      # shutdown: every BEAR damping
+    assert not any(status["dynamixel"]["torque_enabled"])   # arms: torque off on exit, as BRUCE-OP
+    np.testing.assert_allclose(plant["arm_q"], hw_config.arms.hold_pose, atol=0.02)  # they were held
+    assert status["bear"]["bulk_comm"] >= 3000
