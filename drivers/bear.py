@@ -42,6 +42,7 @@ from enum import IntEnum, IntFlag
 import numpy as np
 
 from drivers.errors import BusTimeout, DeviceFault, DriverError, LinkStats
+from drivers.framing import skip_to_header
 
 HEADER = b"\xff\xff"
 BROADCAST_ID = 0xFE
@@ -372,16 +373,8 @@ class StatusParser:
         buf += data
         found: list[StatusPacket] = []
         while True:
-            start = buf.find(HEADER)
-            if start < 0:
-                keep = 1 if buf.endswith(b"\xff") else 0  # may be the first header byte
-                if len(buf) > keep:
-                    self.stats.reject("garbage")
-                    del buf[:len(buf) - keep]
+            if not skip_to_header(buf, HEADER, self.stats):
                 return found
-            if start:
-                self.stats.reject("garbage")
-                del buf[:start]
             if len(buf) < 5:
                 return found
             device_id, length, error = buf[2], buf[3], buf[4]

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from drivers.errors import BusTimeout, DeviceFault, DriverError, LinkStats
+from drivers.framing import skip_to_header
 
 # -- protocol constants (ROBOTIS Protocol 2.0) ------------------------------------------------------------------
 HEADER = b"\xff\xff\xfd\x00"
@@ -224,17 +225,8 @@ class PacketParser:
         buf.extend(data)
         found: list[Packet] = []
         while True:
-            start = buf.find(HEADER)
-            if start < 0:
-                # Keep a tail that may be the start of a header; everything before it is garbage.
-                keep = next((k for k in (3, 2, 1) if buf.endswith(HEADER[:k])), 0)
-                if len(buf) > keep:
-                    self.stats.reject("garbage")
-                    del buf[:len(buf) - keep]
+            if not skip_to_header(buf, HEADER, self.stats):
                 return found
-            if start:
-                self.stats.reject("garbage")
-                del buf[:start]
             if len(buf) < 7:
                 return found
             length = buf[5] | (buf[6] << 8)

@@ -66,6 +66,7 @@ from drivers.bear import (
 )
 from drivers.emulators.pty_device import PtyDevice
 from drivers.errors import LinkStats
+from drivers.framing import skip_to_header
 
 STALE_RX_S = 0.02
 CORRUPTIONS = ("checksum", "truncate", "garbage", "foreign", "drop")
@@ -387,16 +388,8 @@ class BearBusEmulator:
         """Complete, checksum-valid packets from the receive buffer; resynchronises on FF FF after garbage."""
         buf = self._rx
         while True:
-            start = buf.find(HEADER)
-            if start < 0:
-                keep = 1 if buf.endswith(b"\xff") else 0
-                if len(buf) > keep:
-                    self.stats.reject("garbage")
-                    del buf[:len(buf) - keep]
+            if not skip_to_header(buf, HEADER, self.stats):
                 return
-            if start:
-                self.stats.reject("garbage")
-                del buf[:start]
             if len(buf) < 4:
                 return
             device_id, length = buf[2], buf[3]
