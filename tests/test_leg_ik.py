@@ -65,8 +65,10 @@ def test_gait_phase_alternates_steps_after_one_start_up_period():
 
 
 def test_swing_profiles_start_and_end_at_rest():
-    for s in (0.0, 1.0):
-        assert min_jerk(s)[1] == pytest.approx(0.0)
-        assert swing_height(s, 0.04, -0.004)[1] == pytest.approx(0.0)
-    assert swing_height(0.5, 0.04, 0.0)[0] == pytest.approx(0.04)
-    assert swing_height(1.0, 0.04, -0.004)[0] == pytest.approx(-0.004)
+    h = 1e-6
+    for s in (h, 1.0 - h):  # one-sided slopes at the ends, inside the clamp
+        assert (min_jerk(s + h) - min_jerk(s - h)) / (2 * h) == pytest.approx(0.0, abs=1e-5)
+        assert (swing_height(s + h, 0.04, -0.004) - swing_height(s - h, 0.04, -0.004)) / (2 * h) == \
+            pytest.approx(0.0, abs=1e-5)
+    assert swing_height(0.5, 0.04, 0.0) == pytest.approx(0.04)
+    assert swing_height(1.0, 0.04, -0.004) == pytest.approx(-0.004)

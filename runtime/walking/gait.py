@@ -29,21 +29,19 @@ def gait_phase(t: float, period: float) -> GaitPhase:
     return GaitPhase(False, k, k % 2, t_in, step_time - t_in)
 
 
-def min_jerk(s: float) -> tuple[float, float]:
-    """Minimum-jerk blend 0 -> 1 and its derivative, for s in [0, 1] (clamped)."""
+def min_jerk(s: float) -> float:
+    """Minimum-jerk blend 0 -> 1 for s in [0, 1] (clamped): zero slope and curvature at both ends. The teacher
+    takes its rates and accelerations by differencing the joint targets, so no derivative is given."""
     s = min(1.0, max(0.0, s))
-    return s * s * s * (10.0 - 15.0 * s + 6.0 * s * s), 30.0 * s * s * (1.0 - s) * (1.0 - s)
+    return s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
 
 
-def swing_height(s: float, apex: float, landing: float) -> tuple[float, float]:
-    """Height of the swing ankle above its stance-ankle level and its derivative (per unit s): a bump of
-    height `apex` with zero slope at lift-off and touch-down, ending at `landing` (slightly below the
-    ground, so the foot lands rather than hovers)."""
+def swing_height(s: float, apex: float, landing: float) -> float:
+    """Height of the swing ankle above its stance-ankle level: a bump of height `apex` with zero slope at
+    lift-off and touch-down, ending at `landing` (slightly below the ground, so the foot lands rather than
+    hovers)."""
     s = min(1.0, max(0.0, s))
-    bump = 16.0 * s * s * (1.0 - s) * (1.0 - s)
-    dbump = 32.0 * s * (1.0 - s) * (1.0 - 2.0 * s)
-    blend, dblend = min_jerk(s)
-    return apex * bump + landing * blend, apex * dbump + landing * dblend
+    return apex * 16.0 * s * s * (1.0 - s) * (1.0 - s) + landing * min_jerk(s)
 
 
 def lipm_omega(com_height: float, gravity: float = 9.81) -> float:

@@ -132,7 +132,6 @@ class WalkingTeacher:
         kin.qpos[self.qpos] = q
         mujoco.mj_kinematics(self.model, kin)
         mujoco.mj_comPos(self.model, kin)
-        mujoco.mj_crb(self.model, kin)  # the joint-space inertia M(q), for the swing leg's feed-forward
         mujoco.mj_rne(self.model, kin, 0, self.gravity)  # at rest: the fixed-base gravity load of every joint
 
     def _support_torque(self, leg: int, share: float, com: np.ndarray) -> np.ndarray:
@@ -205,7 +204,7 @@ class WalkingTeacher:
             if self.start_offset is None:
                 self.start_offset = float(offset @ side)
             target_lateral = -(0.5 * p.step_width - inner) * p.start_shift
-            blend, _ = min_jerk(t / (self.period - 2 * self.dt))
+            blend = min_jerk(t / (self.period - 2 * self.dt))
             lateral = self.start_offset + blend * (target_lateral - self.start_offset)
             shift = (offset @ side - lateral) * side
             right_share = min(1.0, max(0.0, 0.5 - (offset @ side) / p.step_width))
@@ -259,7 +258,7 @@ class WalkingTeacher:
             def swing_joints(dt: float) -> np.ndarray:
                 """Swing-leg joint targets dt from now: the stance ankle moves by -v dt relative to the base."""
                 s = tau_s + dt / self.step_time
-                yaw_blend, _ = min_jerk(s)
+                yaw_blend = min_jerk(s)
                 target = ankles[stance] - com_velocity * dt + self._swing_point(s)
                 return np.array(self._swing_ik(swing, rot, target, yaw,
                                                self.swing_yaw0 + yaw_blend * (swing_yaw_end - self.swing_yaw0)))
@@ -272,6 +271,7 @@ class WalkingTeacher:
             qd_des[legs] = (q_next - q_prev) / (2 * h)
             self.qacc[:] = 0.0
             self.qacc[self.dofs[legs]] = (q_next - 2 * q_sw + q_prev) / (h * h)
+            mujoco.mj_crb(self.model, kin)  # the joint-space inertia M(q), only needed here
             mujoco.mj_mulM(self.model, kin, self.inertial, self.qacc)
             tau_ff[legs] += p.swing_inertia_gain * self.inertial[self.dofs[legs]]
         # Extra stiffness on top of Eq. 8's: a further Kp * boost * (q_des - q) through a_t.
@@ -305,8 +305,8 @@ class WalkingTeacher:
     def _swing_point(self, s: float) -> np.ndarray:
         """Swing ankle relative to the stance ankle at swing share s."""
         p = self.params
-        h, _ = min_jerk(s / p.swing_horizontal_end)
-        z, _ = swing_height(s, p.swing_apex, p.swing_landing)
+        h = min_jerk(s / p.swing_horizontal_end)
+        z = swing_height(s, p.swing_apex, p.swing_landing)
         rel = self.liftoff + h * (self.landing - self.liftoff)
         rel[2] = self.liftoff[2] * (1.0 - h) + z
         return rel
