@@ -1,10 +1,10 @@
 """A real-time mock run of the whole loop, paced to the wall clock: late ticks and tick work.
 
 The session is what `bruce-run --backend mock --realtime --transfer pinn` runs: mock read (physics), safety
-triggers, standing controller at 100 Hz, Eq. 8, the paper-sized PINN every tick (random weights: no trained
-PINN is committed yet; timing does not depend on the weights), Eq. 9, safety filter, write, and telemetry
-when `--rerun` is given. Goals (issue #3): late ticks (> 250 µs behind the deadline) <= 0.1 % and tick
-work p99 <= 300 µs.
+triggers, the default controller (the committed ONNX walking policy, zero command) at 100 Hz, Eq. 8, the
+paper-sized PINN every tick (random weights, exported like a trained one: timing does not depend on the
+weights), Eq. 9, safety filter, write, and telemetry when `--rerun` is given. Goals (issue #3): late ticks
+(> 250 µs behind the deadline) <= 0.1 % and tick work p99 <= 300 µs.
 
     python bench/bench_realtime_mock.py [--seconds 60] [--transfer pinn|direct] [--rerun save=/tmp/run.rrd]
 """

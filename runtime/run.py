@@ -283,13 +283,16 @@ def build_pinn(config: RobotConfig, transfer: str, pinn_path: Path | None) -> On
 def run_session(backend: Backend, config: RobotConfig, *, duration: float | None, realtime: bool,
                 stats_path: Path | None = None, transfer: str = "direct", policy: Path | None = None,
                 pinn: Path | None = None, rerun=None, controller=None, controller_kind: str = "policy",
-                estimator: str | Estimator | None = None, commands=None) -> RunSummary:
+                estimator: str | Estimator | None = None, commands=None, recorder=None) -> RunSummary:
     """Run one session. `rerun` is a `runtime.telemetry.RerunSink` (None: no telemetry); `controller_kind` picks
     the nominal controller (`build_controller`), and `controller` replaces it (anything with reset(q) and
     __call__(state, base, command) -> a); `estimator` is an estimator kind (`runtime.estimation.ESTIMATORS`) or
     an `Estimator` (default: the truth where the backend has one, else the kinematic estimator); `commands` has
     `at(t) -> (vx, vy, yaw rate)` for t in seconds since activation, e.g. a `runtime.commands.CommandSchedule`
-    (default: stand still)."""
+    (default: stand still). `recorder(tick, q, qd, tau)` (e.g. `training.collect`'s) is called on every tick
+    after the write with the state read and the torque written (the arrays are the loop's: copy what you keep);
+    a non-empty string it returns ends the run after that tick, as the end of `duration` does, with that
+    string as the stop cause. Its time counts in the telemetry section."""
     summary = RunSummary(backend=backend.name, realtime=realtime, transfer=transfer)
     stop = StopFlag()
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -335,7 +338,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
             print(f"bruce-run: {grant.text()}", flush=True)
         gc.disable()
         _loop(backend, config, controller, estimator, commands, pinn_runner, telemetry, summary, stop, duration,
-              realtime)
+              realtime, recorder)
         summary.final_state = backend.state.value
         if backend.state is LifecycleState.FAULT:
             summary.final_state = f"{backend.state.value}: damping"
@@ -370,7 +373,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
 
 
 def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimator, commands, pinn, telemetry,
-          summary: RunSummary, stop: StopFlag, duration: float | None, realtime: bool) -> None:
+          summary: RunSummary, stop: StopFlag, duration: float | None, realtime: bool, recorder=None) -> None:
     stats = summary.loop
     sections = stats.sections
     h_read, h_policy, h_pinn, h_mix = sections["read"], sections["policy"], sections["pinn"], sections["mixing"]
@@ -390,6 +393,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     pacer.start()
     tick, previous_start, late = 0, 0, False
     a = q_hat = qd_hat = None
+    recorder_stop = None
     standstill = np.zeros(3)
     command = standstill
     while stop.cause is None and (n_ticks is None or tick < n_ticks):
@@ -432,6 +436,8 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
         t6 = perf()
         backend.write(JointCommand(tau_ff=tau))
         t7 = perf()
+        if recorder is not None:
+            recorder_stop = recorder(tick, q, qd, tau)
         if telemetry is not None:
             elapsed = now - clock0
             telemetry.append(tick, elapsed, q, qd, q_hat, qd_hat, a, tau_star, tau, (t0 - previous_start) / 1e3,
@@ -460,12 +466,14 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
         previous_start = t0
         tick += 1
         stats.ticks = tick
+        if recorder_stop:
+            break
     stats.late_ticks, stats.skipped_ticks = pacer.late_ticks, pacer.skipped_ticks
 
     if stop.cause is not None:
         safety.trip(f"{stop.cause} received")
     if not safety.tripped:
-        summary.stop_cause = "duration reached"
+        summary.stop_cause = recorder_stop or "duration reached"
         if truth is not None:
             truth.update(backend.ground_truth())
         return

@@ -142,6 +142,41 @@ def test_lstm_state_carries_between_calls():
         assert (a - b).abs().amax() > 1e-6
 
 
+@pytest.mark.parametrize("widths", [(20, 32, 48, 55), (10, 55), (55,)])
+def test_folded_copy_computes_the_same_step(widths):
+    """Folding normalisation, head scales, placement, bI and sqrt(dt) into weights changes no output (float64,
+    so rounding does not hide a wrong fold); the increments are compared, not q' itself, which q dominates.
+    Widths cover a projecting first layer, an identity skip (width n) and a ResNet with no hidden layer."""
+    model = make_random_pinn(PinnConfig(resnet_widths=widths), seed=5).double().eval()
+    random_normalisation(model, seed=5)
+    randomise_head(model, scale=0.3, seed=5)
+    folded = model.folded()
+    assert folded.is_folded and not model.is_folded
+    assert torch.equal(folded.q_std, torch.ones(N, dtype=torch.float64))  # nothing applied twice
+    q, qd, tau = random_inputs(6, seed=5, dtype=torch.float64)
+    h, c = (0.3 * torch.randn(3, 6, 72, dtype=torch.float64) for _ in range(2))
+    with torch.no_grad():
+        reference = model(q, qd, tau, h, c)
+        rows = [folded(q[i:i + 1], qd[i:i + 1], tau[i:i + 1], h[:, i:i + 1], c[:, i:i + 1]) for i in range(6)]
+        result = [torch.cat([row[k] for row in rows], dim=1 if k >= 2 else 0) for k in range(4)]
+        torch.testing.assert_close(result[0] - q - qd * model.dt, reference[0] - q - qd * model.dt, rtol=1e-9,
+                                   atol=1e-15)
+        torch.testing.assert_close(result[1] - qd, reference[1] - qd, rtol=1e-9, atol=1e-15)
+        torch.testing.assert_close(result[2:], reference[2:], rtol=1e-9, atol=1e-12)
+        torch.testing.assert_close(folded.minv(q), model.minv(q), rtol=1e-9, atol=1e-12)
+        assert (reference[1] - qd).abs().amax() > 1e-4  # the compared increments are not trivially zero
+    with pytest.raises(ValueError, match=r"takes q \[1, n\]"):
+        folded(q, qd, tau, h, c)
+
+
+def test_export_folds_and_shrinks_the_graph(exported_pinn):
+    """The exported graph has no input normalisation (Sub/Div) or head-scale Mul left; the sidecar says so."""
+    _, path = exported_pinn
+    ops = [node.op_type for node in onnx.load(str(path)).graph.node]
+    assert "Sub" not in ops and "Div" not in ops
+    assert json.loads(sidecar_path(path).read_text())["folded_affine_stages"] is True
+
+
 @pytest.fixture(scope="module")
 def exported_pinn(tmp_path_factory):
     """A paper-sized PINN with non-trivial normalisation and a random non-zero head, exported once."""
@@ -166,7 +201,8 @@ def test_onnx_io_and_lstm_nodes_and_sidecar(exported_pinn):
     sidecar = json.loads(sidecar_path(path).read_text())
     assert sidecar["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
     assert (sidecar["n_joints"], sidecar["hidden"], sidecar["layers"]) == (N, 72, 3)
-    assert (sidecar["dt"], sidecar["b"], sidecar["opset"]) == (model.dt, 0.3, 17)
+    assert (sidecar["dt"], sidecar["config"]["b"], sidecar["opset"]) == (model.dt, 0.3, 17)
+    assert sidecar["kind"] == "pinn_step" and sidecar["config"]["resnet_widths"] == [20, 32, 48, 55]
     assert sidecar["torch"] == torch.__version__ and sidecar["onnxruntime"] == ort.__version__
 
 
@@ -229,3 +265,21 @@ def test_random_models_are_seeded():
     assert all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values(), strict=True))
     assert not torch.equal(a.resnet.out.weight, c.resnet.out.weight)
     assert torch.equal(make_random_policy(5, N, seed=1)[0].weight, make_random_policy(5, N, seed=1)[0].weight)
+
+
+def test_window_call_equals_ticks_carried_one_by_one():
+    """Training's teacher-forced window [W, B, n] is the same computation as W ticks with the state carried."""
+    model = make_random_pinn(seed=9).double()
+    random_normalisation(model, seed=9)
+    randomise_head(model, scale=0.3, seed=9)
+    generator = torch.Generator().manual_seed(9)
+    q, qd, tau = (torch.randn(5, 3, N, generator=generator, dtype=torch.float64) for _ in range(3))
+    h, c = model.initial_state(3)
+    with torch.no_grad():
+        q_w, qd_w, h_w, c_w = model(q, qd, tau, h, c)
+        for t in range(5):
+            q_t, qd_t, h, c = model(q[t], qd[t], tau[t], h, c)
+            torch.testing.assert_close(q_w[t], q_t, rtol=1e-12, atol=1e-12)
+            torch.testing.assert_close(qd_w[t], qd_t, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close((h_w, c_w), (h, c), rtol=1e-12, atol=1e-12)
+    assert (qd_w[1:] - qd_w[:1]).abs().amax() > 1e-3  # the steps differ: the comparison is not of constants

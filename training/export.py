@@ -9,18 +9,22 @@ runtime can tell which model it is running.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
+import sys
 import warnings
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import numpy as np
 import onnx
 import onnxruntime
 import torch
 from torch import nn
 
+from training.lstm_baseline import LstmStep
 from training.pinn import PinnStep, make_random_pinn
 
 __all__ = ["ExportError", "export_mlp_policy_onnx", "export_pinn_onnx", "make_random_pinn", "make_random_policy",
@@ -117,21 +121,25 @@ def _export_checked(model: nn.Module, example_inputs: tuple[torch.Tensor, ...], 
     return path
 
 
-def export_pinn_onnx(model: PinnStep, path: str | Path, *, opset: int = 17) -> Path:
-    """Export one PINN tick: q, qd, tau [1, n], h, c [layers, 1, hidden] -> q_next, qd_next, h_next, c_next."""
+def export_pinn_onnx(model: PinnStep | LstmStep, path: str | Path, *, opset: int = 17) -> Path:
+    """Export one tick of a recurrent dynamics model with the PINN's tensor contract (the PINN, or the pure-LSTM
+    baseline): q, qd, tau [1, n], h, c [layers, 1, hidden] -> q_next, qd_next, h_next, c_next.
+
+    What is exported is `model.folded()`: the same function with the normalisation and output scales folded into
+    the weights (fewer graph nodes, so a cheaper tick); `model` itself is not changed."""
     config = model.config
     n = config.n_joints
     example = (torch.zeros(1, n), torch.zeros(1, n), torch.zeros(1, n), *model.initial_state(1))
-    example = tuple(t.to(torch.float32) for t in example)
-    if model.b_eye.dtype != torch.float32:
-        raise ExportError(f"the PINN's parameters are {model.b_eye.dtype}; export a float32 model")
+    dtypes = {p.dtype for p in model.parameters()}
+    if dtypes != {torch.float32}:
+        raise ExportError(f"the model's parameters are {sorted(map(str, dtypes))}; export a float32 model")
+    kind = {PinnStep: "pinn_step", LstmStep: "lstm_step"}[type(model)]
     return _export_checked(
-        model, example, path,
+        model.folded(), example, path,
         input_names=("q", "qd", "tau", "h", "c"), output_names=("q_next", "qd_next", "h_next", "c_next"),
         opset=opset, op_counts={"LSTM": config.lstm_layers},
-        metadata={"kind": "pinn_step", "n_joints": n, "hidden": config.lstm_hidden, "layers": config.lstm_layers,
-                  "dt": config.dt, "b": config.b, "resnet_widths": list(config.resnet_widths),
-                  "activation": config.activation},
+        metadata={"kind": kind, "n_joints": n, "hidden": config.lstm_hidden, "layers": config.lstm_layers,
+                  "dt": config.dt, "config": dataclasses.asdict(config), "folded_affine_stages": True},
     )
 
 
@@ -162,3 +170,67 @@ def make_random_policy(obs_dim: int, n_joints: int, hidden: Sequence[int] = (64,
                 layers.append(nn.ELU())
             layers.append(nn.Linear(w_in, w_out))
     return nn.Sequential(*layers)
+
+
+def rollout_parity(model: nn.Module, path: str | Path, stats: dict | None = None, steps: int = 1000,
+                   seed: int = 0) -> float:
+    """Worst |torch - onnxruntime| over `steps` ticks where each side feeds back its own q', qd' (and h', c'):
+    a closed loop around the model's own predictions, tau = tau_mean + 0.3 tau_std noise - 2 qd (damped, so an
+    untrained or trained model stays bounded), starting at q_mean. `stats` is a DatasetStats.to_json() dict."""
+    n = model.n_joints
+    rng = np.random.default_rng(seed)
+    mean = np.asarray(stats["q_mean"]) if stats else np.zeros(n)
+    tau_mean = np.asarray(stats["tau_mean"]) if stats else np.zeros(n)
+    tau_std = np.asarray(stats["tau_std"]) if stats else np.ones(n)
+    noise = (tau_mean + 0.3 * tau_std * rng.standard_normal((steps, n))).astype(np.float32)
+    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    inputs = [i.name for i in session.get_inputs()]
+    outputs = [o.name for o in session.get_outputs()]
+    torch_state = [torch.as_tensor(mean, dtype=torch.float32)[None], torch.zeros(1, n), *model.initial_state(1)]
+    ort_state = [t.numpy().copy() for t in torch_state]
+    worst = 0.0
+    with torch.no_grad():
+        for noise_t in noise:
+            tau_torch = torch.from_numpy(noise_t)[None] - 2.0 * torch_state[1]
+            tau_ort = noise_t[None] - 2.0 * ort_state[1]
+            torch_state = list(model(torch_state[0], torch_state[1], tau_torch, *torch_state[2:]))
+            feeds = dict(zip(inputs, [ort_state[0], ort_state[1], tau_ort, *ort_state[2:]], strict=True))
+            ort_state = session.run(outputs, feeds)
+            worst = max(worst, *(float(np.abs(t.numpy() - o).max()) for t, o in zip(torch_state, ort_state,
+                                                                                      strict=True)))
+    return worst
+
+
+def main(argv: list[str] | None = None) -> int:
+    """bruce-export: a trained checkpoint (bruce-train) -> ONNX for the runtime, with a parity check."""
+    import argparse
+
+    from training.checkpoint import load_model_checkpoint
+
+    parser = argparse.ArgumentParser(prog="bruce-export", description="Export a trained dynamics checkpoint to "
+                                     "ONNX (one tick per call, explicit LSTM state) and check torch/onnxruntime "
+                                     "parity over a 1000-step closed-loop rollout.")
+    parser.add_argument("--checkpoint", required=True, help="checkpoint written by bruce-train")
+    parser.add_argument("--out", required=True, help="ONNX file to write (its sidecar goes to <out>.json)")
+    parser.add_argument("--tolerance", type=float, default=1e-5, help="worst allowed |torch - ORT| (default 1e-5)")
+    args = parser.parse_args(argv)
+    model, payload = load_model_checkpoint(args.checkpoint)
+    if payload["kind"] in ("pinn", "lstm"):
+        path = export_pinn_onnx(model, args.out)
+    elif payload["kind"] == "olnn":
+        from training.olnn import export_olnn_onnx
+        path = export_olnn_onnx(model, args.out)
+    else:
+        parser.error(f"{args.checkpoint}: kind {payload['kind']!r} has no ONNX export (pinn, lstm, olnn do)")
+    worst = rollout_parity(model, path, payload.get("stats"))
+    sidecar = json.loads(sidecar_path(path).read_text())
+    sidecar.update(checkpoint=str(args.checkpoint), checkpoint_sha256=_sha256(Path(args.checkpoint)),
+                   data=payload.get("data"), train=payload.get("train", {}).get("config"),
+                   epochs=payload.get("train", {}).get("epoch"), parity_1000_steps=worst)
+    sidecar_path(path).write_text(json.dumps(sidecar, indent=2) + "\n")
+    print(f"bruce-export: {payload['kind']} -> {path}; torch/onnxruntime parity over 1000 closed-loop steps: "
+          f"{worst:.2e} (tolerance {args.tolerance:g})")
+    if not worst <= args.tolerance:
+        print(f"bruce-export: parity {worst:.2e} exceeds {args.tolerance:g}", file=sys.stderr)
+        return 1
+    return 0

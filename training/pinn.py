@@ -9,17 +9,28 @@
 explicit input and output, so the exported ONNX graph (training/export.py) is called once per tick and the
 caller feeds h', c' back (onnxruntime is stateless). Training unrolls the same module over windows against
 Eq. 7. Normalisation constants are buffers inside the module, so torch and onnxruntime apply identical scaling.
-M^-1 is assembled and applied, never inverted.
+M^-1 is assembled and applied, never inverted: with A = sqrt(dt) (L + bI), qdd dt = A^T (A (tau + f_n)).
+
+For export, `folded()` returns the same module with its constant affine stages folded into the adjacent weights
+(input normalisation into the ResNet's first layer and the LSTM's input weights, the head's denormalisation
+into the head, the tril placement, bI and sqrt(dt) into the ResNet's output layer). Same math, ~7 fewer graph
+nodes: at 1 kHz onnxruntime's per-node cost, not FLOPs, sets the tick's latency (research anchors §9).
 """
 
 from __future__ import annotations
 
+import copy
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import nn
+
+if TYPE_CHECKING:
+    from training.dataset import DatasetStats
 
 OptionalArray = np.ndarray | torch.Tensor | Sequence[float] | None
 
@@ -127,6 +138,9 @@ class PinnStep(nn.Module):
         self.register_buffer("placement", tril_placement(n))
         # b I of Eq. 5, flattened like L, added after the placement MatMul.
         self.register_buffer("b_eye", (config.b * torch.eye(n)).reshape(n * n))
+        self.sqrt_dt = math.sqrt(config.dt)
+        # True only in the export copy made by folded(): the affine stages live in the weights there.
+        self.is_folded = False
 
         # Sequence-first (batch_first=False): the ONNX LSTM op is [seq, batch, feature], so the exporter needs no
         # transposes; each call is one time step (seq = 1).
@@ -150,7 +164,8 @@ class PinnStep(nn.Module):
         for name, value in given.items():
             if value is None:
                 continue
-            tensor = torch.as_tensor(np.asarray(value, dtype=np.float64))
+            tensor = (value.detach().to(torch.float64) if isinstance(value, torch.Tensor)
+                      else torch.tensor(np.array(value, dtype=np.float64)))  # np.array copies: datasets are read-only
             buffer = getattr(self, name)
             if tensor.shape != buffer.shape:
                 raise ValueError(f"set_normalisation: {name} must have shape {tuple(buffer.shape)}, "
@@ -170,36 +185,109 @@ class PinnStep(nn.Module):
         like = self.b_eye
         return like.new_zeros(shape), like.new_zeros(shape)
 
-    def _chol_factor(self, q_norm: torch.Tensor) -> torch.Tensor:
-        """A = L + bI, [B, n, n], from normalised q."""
-        n = self.n_joints
-        flat = self.resnet(q_norm) @ self.placement + self.b_eye
-        return flat.reshape(-1, n, n)
+    def fit_normalisation(self, stats: DatasetStats) -> None:
+        """Input statistics and output scales from the training split: f_n is a torque, so its head output is
+        scaled by the spread of tau; dq corrects the Euler step, so it is scaled by the spread of that residual."""
+        self.set_normalisation(q_mean=stats.q_mean, q_std=stats.q_std, qd_mean=stats.qd_mean, qd_std=stats.qd_std,
+                               tau_mean=stats.tau_mean, tau_std=stats.tau_std, fn_scale=stats.tau_std,
+                               dq_scale=stats.q_inc_std)
+
+    def _scaled_factor(self, q_in: torch.Tensor) -> torch.Tensor:
+        """A = sqrt(dt) (L + bI) flattened row-major, [B, n*n], from the ResNet's input (normalised q; raw q once
+        folded)."""
+        flat = self.resnet(q_in)
+        return flat if self.is_folded else (flat @ self.placement + self.b_eye) * self.sqrt_dt
+
+    def _resnet_input(self, q: torch.Tensor) -> torch.Tensor:
+        return q if self.is_folded else (q - self.q_mean) / self.q_std
 
     def minv(self, q: torch.Tensor) -> torch.Tensor:
-        """M^-1(q) = (L + bI)^T (L + bI), [B, n, n] (Eq. 5), for raw joint angles q [B, n]."""
-        factor = self._chol_factor((q - self.q_mean) / self.q_std)
-        return factor.transpose(1, 2) @ factor
+        """M^-1(q) = (L + bI)^T (L + bI), [..., n, n] (Eq. 5), for raw joint angles q [..., n]."""
+        n = self.n_joints
+        factor = self._scaled_factor(self._resnet_input(q)).unflatten(-1, (n, n))
+        return factor.transpose(-1, -2) @ factor / self.dt
 
     def forward(self, q: torch.Tensor, qd: torch.Tensor, tau: torch.Tensor, h: torch.Tensor, c: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One tick for q, qd, tau [B, n]; or, for training, a teacher-forced window [W, B, n] (time first, like
+        nn.LSTM): the same math at every step, the LSTM carrying its state through the window, which returns
+        q', qd' [W, B, n] and the state after the last step."""
         n = self.n_joints
+        window = q.dim() == 3
+        features = torch.cat([q, qd, tau], dim=-1)  # [..., 3n]
+        if self.is_folded:
+            if not torch.jit.is_tracing() and (window or q.shape[0] != 1):  # the export traces batch 1
+                raise ValueError(f"a folded PinnStep is the exported tick and takes q [1, n], got {list(q.shape)}")
+            q_in = q
+        else:
+            mean = torch.cat([self.q_mean, self.qd_mean, self.tau_mean])
+            std = torch.cat([self.q_std, self.qd_std, self.tau_std])
+            features = (features - mean) / std
+            q_in = features[..., :n]
+
+        factor = self._scaled_factor(q_in)  # sqrt(dt) (L + bI), flattened
+
+        lstm_out, (h_next, c_next) = self.lstm(features if window else features.unsqueeze(0), (h, c))
+        head = self.head(lstm_out if window else h_next[-1])  # a tick's output is the last layer's new h
+        if not self.is_folded:
+            head = head * torch.cat([self.fn_scale, self.dq_scale])
+        f_n, dq = head.split(n, dim=-1)
+
+        # Eq. 4 times dt with row vectors: (A^T A v)^T = v^T A^T A, since M^-1 dt = A^T A. The tick (batch 1)
+        # uses 2-D products, which export without the Unsqueeze/Squeeze that the batched form needs.
+        v = tau + f_n
+        if self.is_folded:
+            factor = factor.reshape(n, n)
+            qdd_dt = v @ factor.T @ factor
+        else:  # broadcast products: batched 10x10 matmuls are slow on a CPU in training's large batches
+            factor = factor.unflatten(-1, (n, n))
+            a_v = (factor * v.unsqueeze(-2)).sum(-1)  # A v
+            qdd_dt = (factor * a_v.unsqueeze(-1)).sum(-2)  # A^T (A v)
+        q_next = q + qd * self.dt + dq  # Eq. 6, old qd
+        qd_next = qd + qdd_dt
+        return q_next, qd_next, h_next, c_next
+
+    @torch.no_grad()
+    def folded(self) -> PinnStep:
+        """An inference copy with the affine stages folded into the weights (module docstring); same outputs to
+        float32 rounding. Its normalisation buffers are reset to identity, so nothing is applied twice."""
+        if self.is_folded:
+            return copy.deepcopy(self)
+        out = copy.deepcopy(self).eval()
+        n = self.n_joints
+        # Input normalisation x_norm = (x - m) / s folded into every linear map that reads it: W x_norm + b =
+        # (W / s) x + (b - W m / s). The first residual layer's projection had no bias; it gets one.
+        first = out.resnet.hidden[0] if len(out.resnet.hidden) else None
+        readers = [first.linear, first.skip] if first is not None else [out.resnet.out]
+        for i, layer in enumerate(readers):
+            if isinstance(layer, nn.Identity):  # first layer with width n: the skip is x_norm itself
+                layer = readers[i] = first.skip = nn.Linear(n, n).to(self.b_eye.dtype)
+                layer.weight.copy_(torch.eye(n))
+                layer.bias.zero_()
+            weight = layer.weight.clone()
+            if layer.bias is None:
+                layer.bias = nn.Parameter(torch.zeros(layer.out_features, dtype=weight.dtype))
+            layer.weight.copy_(weight / self.q_std)
+            layer.bias.sub_(weight @ (self.q_mean / self.q_std))
         mean = torch.cat([self.q_mean, self.qd_mean, self.tau_mean])
         std = torch.cat([self.q_std, self.qd_std, self.tau_std])
-        features = (torch.cat([q, qd, tau], dim=1) - mean) / std  # [B, 3n], normalised
-        q_norm = features[:, :n]
-
-        factor = self._chol_factor(q_norm)
-        minv = factor.transpose(1, 2) @ factor
-
-        lstm_out, (h_next, c_next) = self.lstm(features.unsqueeze(0), (h, c))
-        head = self.head(lstm_out.squeeze(0)) * torch.cat([self.fn_scale, self.dq_scale])
-        f_n, dq = head.split(n, dim=1)
-
-        qdd = (minv @ (tau + f_n).unsqueeze(2)).squeeze(2)  # Eq. 4
-        q_next = q + qd * self.dt + dq  # Eq. 6, old qd
-        qd_next = qd + qdd * self.dt
-        return q_next, qd_next, h_next, c_next
+        weight_ih = out.lstm.weight_ih_l0.clone()
+        out.lstm.weight_ih_l0.copy_(weight_ih / std)
+        out.lstm.bias_ih_l0.sub_(weight_ih @ (mean / std))
+        # Head denormalisation.
+        scale = torch.cat([self.fn_scale, self.dq_scale])
+        out.head.weight.mul_(scale[:, None])
+        out.head.bias.mul_(scale)
+        # Output layer -> sqrt(dt) (L + bI) flattened, directly: (W h + b) P + bI = (P^T W) h + (P^T b + bI).
+        last = out.resnet.out
+        tril = nn.Linear(last.in_features, n * n).to(self.b_eye.dtype)
+        tril.weight.copy_(self.placement.T @ last.weight * self.sqrt_dt)
+        tril.bias.copy_((last.bias @ self.placement + self.b_eye) * self.sqrt_dt)
+        out.resnet.out = tril
+        out.set_normalisation(q_mean=np.zeros(n), q_std=np.ones(n), qd_mean=np.zeros(n), qd_std=np.ones(n),
+                              tau_mean=np.zeros(n), tau_std=np.ones(n), fn_scale=np.ones(n), dq_scale=np.ones(n))
+        out.is_folded = True
+        return out
 
 
 def make_random_pinn(config: PinnConfig | None = None, seed: int = 0) -> PinnStep:

@@ -1,0 +1,327 @@
+"""`bruce-collect`: record the simulator's joint dynamics under the walking policy, as the PINN's training data.
+
+    bruce-collect --seconds 90 --seed 0 --out data/walk_90s.npz [--config PATH] [--segment-s 3.0] [--policy PATH]
+
+The committed walking policy (`policy.model` of the config, or --policy) walks the nominal MuJoCo mock through
+the runtime's own session loop (`runtime.run.run_session`: the same read -> policy -> Eq. 8 -> safety ->
+write ticks as `bruce-run --backend mock`, transfer direct, ground-truth base state, unpaced), and a recorder
+hooked into that loop keeps every 1 kHz tick:
+
+- `q`, `qd`: the joint state read at the tick; `tau`: the torque written at the tick, i.e. what the safety stage
+  returned, which the mock's motors apply over the next physics step (they saturate it again by actuator and
+  joint limits, which the safety stage already enforces, so it is applied unchanged). Sample t + 1 is therefore
+  the state reached from sample t under `tau[t]`.
+- Velocity commands (vx, vy, yaw rate; heading frame) are drawn uniformly from the paper's box
+  (-0.5, 1.0) m/s x (-0.5, 0.5) m/s x (-0.5, 0.5) rad/s and clipped to what the policy was distilled on
+  (`training.distill`: vx [-0.5, 0.8] m/s, vy [-0.2, 0.2] m/s, wz [-0.5, 0.5] rad/s; so vx = 0.8 for 13 % of
+  the segments and |vy| = 0.2 for 60 %). Each is held for `--segment-s` (default 3 s) and reached by the
+  runtime's 0.5 s linear ramp from the one before (`runtime.commands.CommandSchedule`).
+- Episodes: each starts a fresh mock (standing pose, at rest) and a standstill command for the warm-up,
+  `safety.soft_start_s` (1.5 s): the torque ramp and the settling from the placed pose are run but NOT
+  recorded, so an episode's first sample is the robot standing under the running controller, and the first
+  sampled command starts there. A fall (the runtime's test: base below 0.6 x its nominal standing height, or
+  tilted over 45 deg, from the simulator's truth, checked every tick) ends the episode: its last 0.5 s before
+  the fall is dropped, and a new episode starts. Episodes run until `--seconds` of samples are kept, so the
+  file holds exactly round(seconds x loop_hz) samples.
+
+The file is `training.dataset`'s format: `q`, `qd`, `tau` float64 [T, 10], `episode` int64 [T], `dt`, and
+`metadata` (JSON): format_version, joint_names, config_hash (`training.dataset.config_hash`), config path, seed,
+seconds, samples, dt, units, the command box and clip, segment_s, ramp_s, warmup_s, fall test and trim, the
+policy file and its SHA-256, package version, command line, creation date (UTC, the only field that differs
+between two runs with the same seed), per-episode records (first_index, samples, end: "duration" or the fall or
+safety cause, simulated_s, base_xy_start/end at the first and last kept sample) and per-segment records
+(episode, first_index, t_s since the episode's first kept sample, sampled and clipped command). The same seed
+gives the same arrays and metadata (the simulation and the policy run on one thread, deterministically).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import datetime
+import hashlib
+import io
+import logging
+import math
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from importlib import metadata as package_metadata
+from pathlib import Path
+
+import numpy as np
+
+from bruce_hw.backend import BackendError
+from bruce_hw.config import DEFAULT_CONFIG, ConfigError, RobotConfig, load_config
+from bruce_hw.mock import MujocoBackend
+from runtime.commands import COMMAND_AXES, COMMAND_LIMITS, CommandSchedule
+from runtime.estimation import tilt_of
+from runtime.inference import ModelError
+from runtime.run import FALL_HEIGHT_FRACTION, FALL_TILT_RAD, build_controller, run_session
+from training.dataset import Dataset, DatasetError, config_hash, save_dataset
+
+SAMPLE_BOX = {"vx": (-0.5, 1.0), "vy": (-0.5, 0.5), "wz": (-0.5, 0.5)}   # the paper's §IV-B command box
+# What the committed policy supports: the ranges it was distilled on (training.distill.DistillSettings; the test
+# checks them against the policy's sidecar), inside the runtime's COMMAND_LIMITS.
+POLICY_CLIP = {"vx": (-0.5, 0.8), "vy": (-0.2, 0.2), "wz": (-0.5, 0.5)}
+COMMAND_RAMP_S = 0.5
+FALL_TRIM_S = 0.5
+PROGRESS_TICKS = 100  # the progress bar moves every 0.1 s of simulated time
+MAX_EMPTY_EPISODES = 20  # in a row: a controller that falls before anything is kept would never finish
+INTERRUPTS = ("SIGINT", "SIGTERM")
+
+
+class CollectError(RuntimeError):
+    """A collection that cannot finish (the controller falls before anything is kept)."""
+
+
+@dataclass(frozen=True)
+class CollectSettings:
+    seconds: float = 90.0     # recorded (kept) simulated seconds
+    seed: int = 0
+    segment_s: float = 3.0    # each sampled command is held this long
+    fall_trim_s: float = FALL_TRIM_S
+    ramp_s: float = COMMAND_RAMP_S
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.seconds) and self.seconds > 0):
+            raise ValueError(f"seconds: expected a duration > 0 s, got {self.seconds!r}")
+        if not (math.isfinite(self.segment_s) and self.segment_s > 0):
+            raise ValueError(f"segment_s: expected a duration > 0 s, got {self.segment_s!r}")
+        if not self.fall_trim_s >= 0 or not self.ramp_s >= 0:
+            raise ValueError(f"fall_trim_s and ramp_s must be >= 0 s, got {self.fall_trim_s!r}, {self.ramp_s!r}")
+        for axis, (low, high) in POLICY_CLIP.items():  # a clip outside the runtime's limits is a programming error
+            assert COMMAND_LIMITS[axis][0] <= low < high <= COMMAND_LIMITS[axis][1], axis
+
+
+def sample_command(rng: np.random.Generator) -> tuple[list[float], list[float]]:
+    """(sampled, clipped): one draw from SAMPLE_BOX and the command the policy gets, clipped to POLICY_CLIP."""
+    sampled = [float(rng.uniform(*SAMPLE_BOX[axis])) for axis in COMMAND_AXES]
+    clipped = [min(max(v, POLICY_CLIP[axis][0]), POLICY_CLIP[axis][1]) for axis, v in zip(COMMAND_AXES, sampled,
+                                                                                            strict=True)]
+    return sampled, clipped
+
+
+class EpisodeRecorder:
+    """The session's per-tick recorder (`run_session(recorder=...)`): copies q, qd and the written torque into
+    preallocated arrays, and ends the session at a fall."""
+
+    def __init__(self, backend: MujocoBackend, n_ticks: int, n_joints: int, on_tick: Callable[[int], None]):
+        self.backend = backend
+        self.q = np.empty((n_ticks, n_joints))
+        self.qd = np.empty((n_ticks, n_joints))
+        self.tau = np.empty((n_ticks, n_joints))
+        self.base_xy = np.empty((n_ticks, 2))
+        self.ticks = 0
+        self.fell_at: int | None = None
+        self.on_tick = on_tick
+
+    def __call__(self, tick: int, q: np.ndarray, qd: np.ndarray, tau: np.ndarray) -> str | None:
+        self.q[tick] = q
+        self.qd[tick] = qd
+        self.tau[tick] = tau
+        truth = self.backend.ground_truth()
+        self.base_xy[tick] = truth.base_pos[:2]
+        self.ticks = tick + 1
+        if tick % PROGRESS_TICKS == 0:
+            self.on_tick(tick)
+        height = float(truth.base_pos[2])
+        if height < FALL_HEIGHT_FRACTION * self.backend.nominal_base_height or tilt_of(truth.base_quat) > FALL_TILT_RAD:
+            self.fell_at = tick
+            return f"fell at {tick * self.backend.config.dt:.3f} s (base height {height:.3f} m)"
+        return None
+
+
+class Progress:
+    """A tqdm bar over the kept simulated seconds, on stderr."""
+
+    def __init__(self, ticks: int, dt: float, enabled: bool):
+        self.bar = None
+        if enabled:
+            from tqdm import tqdm
+
+            # Counts ticks (integers: no float drift past the total), shown in seconds through unit_scale.
+            self.bar = tqdm(total=ticks, unit="s", unit_scale=dt, desc="bruce-collect", file=sys.stderr,
+                            bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} s simulated "
+                                       "[{elapsed}<{remaining}, {rate_fmt}]{postfix}")
+
+    def show(self, kept_ticks: int) -> None:
+        """Kept ticks so far; it moves back when a fall's tail is dropped."""
+        if self.bar is not None:
+            self.bar.update(kept_ticks - self.bar.n)
+
+    def episode(self, episodes: int, falls: int) -> None:
+        if self.bar is not None:
+            self.bar.set_postfix(episodes=episodes, falls=falls)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def collect(config: RobotConfig, settings: CollectSettings, *, policy: Path | None = None,
+            backend_factory: Callable[[RobotConfig], MujocoBackend] = MujocoBackend, progress: bool = False,
+            command_line: str | None = None) -> Dataset:
+    """Roll the walking policy out in the mock until `settings.seconds` of samples are kept (module docstring).
+
+    `backend_factory(config)` makes each episode's mock (tests pass one that pushes or spies)."""
+    policy_path = policy or config.models.policy
+    if policy_path is None:
+        raise ConfigError(f"{config.path}: policy.model: collection needs the walking policy (null runs the "
+                          "standing controller); set it or pass --policy")
+    controller, _ = build_controller(config, Path(policy_path), "policy")
+    hz, dt = config.loop_hz, config.dt
+    target = round(settings.seconds * hz)
+    warmup = round(config.safety.soft_start_s * hz)
+    trim = round(settings.fall_trim_s * hz)
+    rng = np.random.default_rng(settings.seed)
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    episodes: list[dict] = []
+    segments: list[dict] = []
+    kept, falls, empty_in_a_row = 0, 0, 0
+    bar = Progress(target, dt, progress)
+    runtime_log = logging.getLogger("runtime")
+    saved_level = runtime_log.level
+    runtime_log.setLevel(logging.WARNING)  # one "torque ramp done" line per episode would bury the progress bar
+    try:
+        while kept < target:
+            n_ticks = warmup + target - kept
+            schedule, drawn = _episode_commands(rng, n_ticks * dt, config.safety.soft_start_s, settings)
+            backend = backend_factory(config)
+            recorder = EpisodeRecorder(backend, n_ticks, config.n_joints,
+                                       lambda tick, base=kept: bar.show(base + max(0, tick - warmup)))
+            with contextlib.redirect_stdout(io.StringIO()):  # run_session's per-run banner and summary
+                summary = run_session(backend, config, duration=n_ticks / hz, realtime=False, controller=controller,
+                                      commands=schedule, recorder=recorder)
+            if summary.stop_cause in INTERRUPTS:
+                raise KeyboardInterrupt(summary.stop_cause)
+            ended_early = summary.stop_cause != "duration reached"
+            # A fall is the recorder's last tick; a safety trip stops the loop before the tick is recorded.
+            end = recorder.fell_at if recorder.fell_at is not None else recorder.ticks
+            stop = max(warmup, end - trim) if ended_early else recorder.ticks
+            falls += ended_early
+            if stop - warmup < 2:  # no transition left to learn from
+                empty_in_a_row += 1
+                if empty_in_a_row >= MAX_EMPTY_EPISODES:
+                    raise CollectError(f"{empty_in_a_row} episodes in a row ended before "
+                                       f"{(warmup + trim + 2) / hz:g} s (last: {summary.stop_cause}); the "
+                                       "controller does not walk in this mock")
+                continue
+            empty_in_a_row = 0
+            index = len(episodes)
+            parts.append((recorder.q[warmup:stop], recorder.qd[warmup:stop], recorder.tau[warmup:stop]))
+            episodes.append({"episode": index, "first_index": kept, "samples": stop - warmup,
+                             "end": "duration" if not ended_early else summary.stop_cause,
+                             "simulated_s": round(recorder.ticks / hz, 6),
+                             "base_xy_start": recorder.base_xy[warmup].tolist(),
+                             "base_xy_end": recorder.base_xy[stop - 1].tolist()})
+            for start_s, sampled, clipped in drawn:
+                first = round(start_s * hz)
+                if first < stop:
+                    segments.append({"episode": index, "first_index": kept + first - warmup,
+                                     "t_s": round((first - warmup) / hz, 6), "sampled": sampled, "cmd": clipped})
+            kept += stop - warmup
+            bar.show(kept)
+            bar.episode(len(episodes), falls)
+    finally:
+        runtime_log.setLevel(saved_level)
+        bar.close()
+
+    ids = np.concatenate([np.full(len(q), i, dtype=np.int64) for i, (q, _, _) in enumerate(parts)])
+    meta = {
+        "joint_names": list(config.joints),
+        "config_hash": config_hash(config),
+        "config": str(config.path),
+        "robot": config.name,
+        "seed": settings.seed,
+        "seconds": settings.seconds,
+        "samples": kept,
+        "dt": dt,
+        "units": {"q": "rad", "qd": "rad/s", "tau": "N m"},
+        "tau": "applied: the safety stage's output written to the mock each tick (Eq. 8 only, transfer direct)",
+        "policy": str(policy_path),
+        "policy_sha256": _sha256(Path(policy_path)),
+        "commands": {"axes": list(COMMAND_AXES), "units": ["m/s", "m/s", "rad/s"],
+                     "sampled_uniform": {k: list(v) for k, v in SAMPLE_BOX.items()},
+                     "clipped_to": {k: list(v) for k, v in POLICY_CLIP.items()},
+                     "segment_s": settings.segment_s, "ramp_s": settings.ramp_s},
+        "warmup_s": config.safety.soft_start_s,
+        "fall": {"base_height_below": f"{FALL_HEIGHT_FRACTION} x nominal standing height",
+                 "tilt_above_rad": FALL_TILT_RAD, "trim_s": settings.fall_trim_s},
+        "episodes": episodes,
+        "segments": segments,
+        "package_version": package_metadata.version("bruce-sim2real"),
+        "command": command_line,
+        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+    }
+    return Dataset(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+                   np.concatenate([p[2] for p in parts]), ids, dt, meta, "bruce-collect")
+
+
+def _episode_commands(rng: np.random.Generator, seconds: float, warmup_s: float, settings: CollectSettings
+                      ) -> tuple[CommandSchedule, list[tuple[float, list[float], list[float]]]]:
+    """A standstill for the warm-up, then sampled segments to cover `seconds`; and (start s, sampled, clipped)
+    of each sampled segment."""
+    timed: list[tuple[float, tuple[float, ...]]] = [(warmup_s, (0.0, 0.0, 0.0))]
+    drawn = []
+    start = warmup_s
+    while start < seconds:
+        sampled, clipped = sample_command(rng)
+        drawn.append((start, sampled, clipped))
+        timed.append((settings.segment_s, tuple(clipped)))
+        start += settings.segment_s
+    return CommandSchedule(timed, settings.ramp_s, name="sampled commands"), drawn
+
+
+def positive_seconds(text: str) -> float:
+    value = float(text)
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a duration > 0 s, got {text}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="bruce-collect", description=__doc__.split("\n\n")[0],
+                                epilog="Format and conventions: python -c 'import training.collect as c; "
+                                       "print(c.__doc__)'")
+    defaults = CollectSettings()
+    p.add_argument("--seconds", type=positive_seconds, default=defaults.seconds, metavar="S",
+                   help="simulated seconds of samples to keep (default: %(default)g, as the paper)")
+    p.add_argument("--seed", type=int, default=defaults.seed, help="command sampling seed (default: %(default)s)")
+    p.add_argument("--out", type=Path, required=True, metavar="PATH", help="the .npz file to write")
+    p.add_argument("--config", default=DEFAULT_CONFIG, help="robot config YAML (default: %(default)s)")
+    p.add_argument("--segment-s", type=positive_seconds, default=defaults.segment_s, metavar="S",
+                   help="how long each sampled velocity command is held (default: %(default)g s)")
+    p.add_argument("--policy", type=Path, default=None, metavar="PATH",
+                   help="ONNX walking policy (default: policy.model in the config)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    command_line = "bruce-collect " + " ".join(sys.argv[1:] if argv is None else argv)
+    try:
+        config = load_config(args.config)
+        dataset = collect(config, CollectSettings(seconds=args.seconds, seed=args.seed, segment_s=args.segment_s),
+                          policy=args.policy, progress=not args.no_progress, command_line=command_line)
+        path = save_dataset(args.out, dataset)
+    except (ConfigError, BackendError, ModelError, DatasetError, CollectError) as exc:
+        print(f"bruce-collect: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("bruce-collect: interrupted, nothing written", file=sys.stderr)
+        return 130
+    meta = dataset.metadata
+    falls = sum(e["end"] != "duration" for e in meta["episodes"])
+    print(f"bruce-collect: wrote {path}: {len(dataset)} samples ({len(dataset) * dataset.dt:g} s at "
+          f"{1 / dataset.dt:g} Hz), {len(meta['episodes'])} episode(s), {falls} ended by a fall, seed {args.seed}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
