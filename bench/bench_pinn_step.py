@@ -21,7 +21,6 @@ import argparse
 import gc
 import os
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +28,7 @@ import onnxruntime as ort
 import torch
 
 from runtime.inference import OnnxPinn, session_options
+from training.evaluate import timed_calls
 from training.export import export_pinn_onnx
 from training.pinn import PinnStep, make_random_pinn
 
@@ -41,16 +41,6 @@ def random_pinn(seed: int = 0) -> PinnStep:
     with torch.no_grad():  # a non-zero head, so the LSTM's output is used like in a trained model
         model.head.weight.normal_(std=1e-3)
     return model.eval()
-
-
-def timed(step, calls: int) -> np.ndarray:
-    out = np.empty(calls)
-    clock = time.perf_counter_ns
-    for i in range(calls):
-        start = clock()
-        step()
-        out[i] = clock() - start
-    return out / 1e3
 
 
 class TorchLoop:
@@ -153,11 +143,11 @@ def main() -> None:
         gc.disable()
         try:
             for name, step in contenders.items():  # warm-up
-                timed(step, 500 if name.startswith("torch") else 2000)
+                timed_calls(step, 500 if name.startswith("torch") else 2000)
             for _ in range(args.blocks):
                 for name, step in contenders.items():
                     calls = args.calls // 10 if name.startswith("torch") else args.calls  # torch is ~10x slower
-                    samples[name].append(timed(step, calls))
+                    samples[name].append(timed_calls(step, calls))
         finally:
             gc.enable()
 

@@ -82,6 +82,8 @@ def test_resume_after_an_interruption_gives_the_uninterrupted_result(walk_data, 
     b, _ = load_model_checkpoint(tmp_path / "cut.pt")
     for (name, x), y in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
         assert torch.equal(x, y), name
+    again = train(path, "pinn", tmp_path / "cut.pt", resume=True, **settings)  # finished: returned as it is
+    assert again["train"]["history"] == resumed["train"]["history"]
     with pytest.raises(ValueError, match="other settings"):
         train(path, "pinn", tmp_path / "whole.pt", resume=True,
               **{**settings, "train_config": small(epochs=5, checkpoint_every=2)})

@@ -39,7 +39,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import datetime
-import hashlib
 import io
 import logging
 import math
@@ -58,7 +57,7 @@ from runtime.commands import COMMAND_AXES, COMMAND_LIMITS, CommandSchedule
 from runtime.estimation import tilt_of
 from runtime.inference import ModelError
 from runtime.run import FALL_HEIGHT_FRACTION, FALL_TILT_RAD, build_controller, run_session
-from training.dataset import Dataset, DatasetError, config_hash, save_dataset
+from training.dataset import Dataset, DatasetError, config_hash, file_sha256, save_dataset
 
 SAMPLE_BOX = {"vx": (-0.5, 1.0), "vy": (-0.5, 0.5), "wz": (-0.5, 0.5)}   # the paper's §IV-B command box
 # What the committed policy supports: the ranges it was distilled on (training.distill.DistillSettings; the test
@@ -159,10 +158,6 @@ class Progress:
             self.bar.close()
 
 
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
 def collect(config: RobotConfig, settings: CollectSettings, *, policy: Path | None = None,
             backend_factory: Callable[[RobotConfig], MujocoBackend] = MujocoBackend, progress: bool = False,
             command_line: str | None = None) -> Dataset:
@@ -244,7 +239,7 @@ def collect(config: RobotConfig, settings: CollectSettings, *, policy: Path | No
         "units": {"q": "rad", "qd": "rad/s", "tau": "N m"},
         "tau": "applied: the safety stage's output written to the mock each tick (Eq. 8 only, transfer direct)",
         "policy": str(policy_path),
-        "policy_sha256": _sha256(Path(policy_path)),
+        "policy_sha256": file_sha256(policy_path),
         "commands": {"axes": list(COMMAND_AXES), "units": ["m/s", "m/s", "rad/s"],
                      "sampled_uniform": {k: list(v) for k, v in SAMPLE_BOX.items()},
                      "clipped_to": {k: list(v) for k, v in POLICY_CLIP.items()},

@@ -60,7 +60,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import hashlib
 import importlib
 import json
 import math
@@ -80,7 +79,7 @@ from torch import nn
 
 from bruce_hw.config import ConfigError, RobotConfig
 from training.checkpoint import CheckpointError, load_model_checkpoint
-from training.dataset import DatasetError, load_dataset, split_by_time
+from training.dataset import DatasetError, file_sha256, load_dataset, split_by_time
 
 BOUND_FACTOR = 10.0
 PARITY_STEPS = 200
@@ -112,14 +111,6 @@ class EvalData:
     @property
     def n_joints(self) -> int:
         return self.q.shape[1]
-
-
-def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def episode_runs(episode: np.ndarray, start: int, stop: int) -> tuple[tuple[int, int], ...]:
@@ -506,7 +497,7 @@ def onnx_parity(model: nn.Module, path: Path, data: EvalData, first: int, steps:
     return worst
 
 
-def _timed(step: Callable[[], Any], calls: int) -> np.ndarray:
+def timed_calls(step: Callable[[], Any], calls: int) -> np.ndarray:
     out = np.empty(calls)
     clock = time.perf_counter_ns
     for i in range(calls):
@@ -530,11 +521,11 @@ def time_contenders(contenders: dict[str, Callable[[], Any]], calls: int, blocks
         gc.collect()
         gc.disable()
         for step in contenders.values():
-            _timed(step, min(calls, 200))
+            timed_calls(step, min(calls, 200))
         per_block = max(1, calls // blocks)
         for _ in range(blocks):
             for name, step in contenders.items():
-                samples[name].append(_timed(step, per_block))
+                samples[name].append(timed_calls(step, per_block))
     finally:
         if gc_was_enabled:
             gc.enable()

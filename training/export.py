@@ -10,7 +10,6 @@ runtime can tell which model it is running.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import sys
 import warnings
@@ -24,6 +23,7 @@ import onnxruntime
 import torch
 from torch import nn
 
+from training.dataset import file_sha256
 from training.lstm_baseline import LstmStep
 from training.pinn import PinnStep, make_random_pinn
 
@@ -40,10 +40,6 @@ class ExportError(RuntimeError):
 def sidecar_path(path: str | Path) -> Path:
     """Where the JSON sidecar of an exported model lives: `<path>.json`."""
     return Path(f"{path}.json")
-
-
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def _check_io(values: Sequence[onnx.ValueInfoProto], names: Sequence[str], shapes: Sequence[tuple[int, ...]],
@@ -105,7 +101,7 @@ def _export_checked(model: nn.Module, example_inputs: tuple[torch.Tensor, ...], 
 
     sidecar = {
         "file": path.name,
-        "sha256": _sha256(path),
+        "sha256": file_sha256(path),
         "opset": opset,
         "exporter": "torch.onnx.export(dynamo=False)",
         "torch": torch.__version__,
@@ -224,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"{args.checkpoint}: kind {payload['kind']!r} has no ONNX export (pinn, lstm, olnn do)")
     worst = rollout_parity(model, path, payload.get("stats"))
     sidecar = json.loads(sidecar_path(path).read_text())
-    sidecar.update(checkpoint=str(args.checkpoint), checkpoint_sha256=_sha256(Path(args.checkpoint)),
+    sidecar.update(checkpoint=str(args.checkpoint), checkpoint_sha256=file_sha256(args.checkpoint),
                    data=payload.get("data"), train=payload.get("train", {}).get("config"),
                    epochs=payload.get("train", {}).get("epoch"), parity_1000_steps=worst)
     sidecar_path(path).write_text(json.dumps(sidecar, indent=2) + "\n")

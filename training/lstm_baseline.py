@@ -19,6 +19,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from training.normalisation import set_statistic_buffers
+
 if TYPE_CHECKING:
     from training.dataset import DatasetStats
 
@@ -58,16 +60,10 @@ class LstmStep(nn.Module):
         self.is_folded = False
 
     def fit_normalisation(self, stats: DatasetStats) -> None:
-        mean = np.concatenate([stats.q_mean, stats.qd_mean, stats.tau_mean])
-        std = np.concatenate([stats.q_std, stats.qd_std, stats.tau_std])
-        scale = np.concatenate([stats.qd_std * self.dt, stats.qd_inc_std])
-        with torch.no_grad():
-            for buffer, value in ((self.input_mean, mean), (self.input_std, std), (self.increment_scale, scale)):
-                if not (np.all(np.isfinite(value)) and value.shape == tuple(buffer.shape)):
-                    raise ValueError(f"fit_normalisation: expected finite statistics of shape {tuple(buffer.shape)}")
-                buffer.copy_(torch.as_tensor(value, dtype=buffer.dtype))
-        if not (self.input_std > 0).all() or not (self.increment_scale > 0).all():
-            raise ValueError("fit_normalisation: stds and scales must be > 0")
+        set_statistic_buffers(self, {"input_mean": np.concatenate([stats.q_mean, stats.qd_mean, stats.tau_mean]),
+                                     "input_std": np.concatenate([stats.q_std, stats.qd_std, stats.tau_std]),
+                                     "increment_scale": np.concatenate([stats.qd_std * self.dt, stats.qd_inc_std])},
+                              "LstmStep.fit_normalisation")
 
     def initial_state(self, batch: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
         shape = (self.config.lstm_layers, batch, self.config.lstm_hidden)

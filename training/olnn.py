@@ -55,12 +55,12 @@ from torch import nn
 from torch.nn import functional
 
 from training.export import ExportError, _export_checked
+from training.normalisation import OptionalArray, register_input_statistics, set_statistic_buffers
 from training.pinn import tril_placement
 
 if TYPE_CHECKING:
     from training.dataset import DatasetStats
 
-OptionalArray = np.ndarray | torch.Tensor | Sequence[float] | None
 Accel = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
 ACTIVATIONS = ("tanh", "softplus")
@@ -180,9 +180,7 @@ class OlnnStep(nn.Module):
         self.n_joints = n
         self.dt = config.dt
 
-        for name in ("q", "qd", "tau"):
-            self.register_buffer(f"{name}_mean", torch.zeros(n))
-            self.register_buffer(f"{name}_std", torch.ones(n))
+        register_input_statistics(self, n)
         self.register_buffer("m_scale", torch.ones(n))  # inertia scale per joint (N m s^2 / rad)
         self.register_buffer("f_scale", torch.ones(n))  # force scale per joint (N m)
         self.register_buffer("v_scale", torch.ones(()))  # potential scale (J), one scalar: dV/dq stays a gradient
@@ -207,25 +205,9 @@ class OlnnStep(nn.Module):
                           v_scale: float | None = None) -> None:
         """Set the input statistics and scales given (each [n_joints], v_scale a scalar); the others keep their
         values. Stds and scales must be > 0. All or nothing: a bad value leaves every buffer as it was."""
-        given = {"q_mean": q_mean, "q_std": q_std, "qd_mean": qd_mean, "qd_std": qd_std, "tau_mean": tau_mean,
-                 "tau_std": tau_std, "m_scale": m_scale, "f_scale": f_scale, "v_scale": v_scale}
-        checked = {}
-        for name, value in given.items():
-            if value is None:
-                continue
-            tensor = torch.as_tensor(np.asarray(value, dtype=np.float64))
-            buffer = getattr(self, name)
-            if tensor.shape != buffer.shape:
-                raise ValueError(f"OlnnStep.set_normalisation: {name} must have shape {tuple(buffer.shape)}, "
-                                 f"got {tuple(tensor.shape)}")
-            if not torch.isfinite(tensor).all():
-                raise ValueError(f"OlnnStep.set_normalisation: {name} has non-finite entries")
-            if not name.endswith("_mean") and not (tensor > 0).all():
-                raise ValueError(f"OlnnStep.set_normalisation: {name} must be > 0 everywhere, got {tensor.tolist()}")
-            checked[name] = tensor
-        with torch.no_grad():
-            for name, tensor in checked.items():
-                getattr(self, name).copy_(tensor.to(getattr(self, name).dtype))
+        set_statistic_buffers(self, {"q_mean": q_mean, "q_std": q_std, "qd_mean": qd_mean, "qd_std": qd_std,
+                                     "tau_mean": tau_mean, "tau_std": tau_std, "m_scale": m_scale, "f_scale": f_scale,
+                                     "v_scale": v_scale}, "OlnnStep.set_normalisation")
 
     def fit_normalisation(self, stats: DatasetStats) -> None:
         """Input statistics and output scales from the training split (module docstring, "Scales")."""

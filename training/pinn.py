@@ -13,8 +13,9 @@ M^-1 is assembled and applied, never inverted: with A = sqrt(dt) (L + bI), qdd d
 
 For export, `folded()` returns the same module with its constant affine stages folded into the adjacent weights
 (input normalisation into the ResNet's first layer and the LSTM's input weights, the head's denormalisation
-into the head, the tril placement, bI and sqrt(dt) into the ResNet's output layer). Same math, ~7 fewer graph
-nodes: at 1 kHz onnxruntime's per-node cost, not FLOPs, sets the tick's latency (research anchors §9).
+into the head, the tril placement, bI and sqrt(dt) into the ResNet's output layer). Same math, 29 instead of 38
+kernels after onnxruntime's fusions: at 1 kHz the per-kernel cost, not FLOPs, sets the tick's latency (research
+anchors §9).
 """
 
 from __future__ import annotations
@@ -29,10 +30,11 @@ import numpy as np
 import torch
 from torch import nn
 
+from training.normalisation import OptionalArray, register_input_statistics, set_statistic_buffers
+
 if TYPE_CHECKING:
     from training.dataset import DatasetStats
 
-OptionalArray = np.ndarray | torch.Tensor | Sequence[float] | None
 
 ACTIVATIONS = {"tanh": nn.Tanh, "elu": nn.ELU}
 
@@ -127,9 +129,7 @@ class PinnStep(nn.Module):
         self.n_joints = n
         self.dt = config.dt
 
-        for name in ("q", "qd", "tau"):
-            self.register_buffer(f"{name}_mean", torch.zeros(n))
-            self.register_buffer(f"{name}_std", torch.ones(n))
+        register_input_statistics(self, n)
         # Denormalisation of the head: f_n in torque units, dq in radians. Training fits them (issue #5).
         self.register_buffer("fn_scale", torch.ones(n))
         self.register_buffer("dq_scale", torch.ones(n))
@@ -158,26 +158,9 @@ class PinnStep(nn.Module):
 
         Stds and scales must be > 0. Values are copied into the buffers, so they travel with state_dict and export.
         """
-        given = {"q_mean": q_mean, "q_std": q_std, "qd_mean": qd_mean, "qd_std": qd_std, "tau_mean": tau_mean,
-                 "tau_std": tau_std, "fn_scale": fn_scale, "dq_scale": dq_scale}
-        checked = {}
-        for name, value in given.items():
-            if value is None:
-                continue
-            tensor = (value.detach().to(torch.float64) if isinstance(value, torch.Tensor)
-                      else torch.tensor(np.array(value, dtype=np.float64)))  # np.array copies: datasets are read-only
-            buffer = getattr(self, name)
-            if tensor.shape != buffer.shape:
-                raise ValueError(f"set_normalisation: {name} must have shape {tuple(buffer.shape)}, "
-                                 f"got {tuple(tensor.shape)}")
-            if not torch.isfinite(tensor).all():
-                raise ValueError(f"set_normalisation: {name} has non-finite entries")
-            if not name.endswith("_mean") and not (tensor > 0).all():
-                raise ValueError(f"set_normalisation: {name} must be > 0 everywhere, got {tensor.tolist()}")
-            checked[name] = tensor
-        with torch.no_grad():  # all or nothing: a bad value leaves every buffer as it was
-            for name, tensor in checked.items():
-                getattr(self, name).copy_(tensor.to(getattr(self, name).dtype))
+        set_statistic_buffers(self, {"q_mean": q_mean, "q_std": q_std, "qd_mean": qd_mean, "qd_std": qd_std,
+                                     "tau_mean": tau_mean, "tau_std": tau_std, "fn_scale": fn_scale,
+                                     "dq_scale": dq_scale}, "PinnStep.set_normalisation")
 
     def initial_state(self, batch: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
         """Zero LSTM state (h, c), each [layers, batch, hidden], in the module's dtype and device."""

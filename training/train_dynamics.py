@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import json
 import math
 import sys
@@ -42,7 +41,15 @@ from tqdm import tqdm
 
 from bruce_hw.config import load_config
 from training.checkpoint import build_model, read_checkpoint, save_checkpoint
-from training.dataset import Dataset, DatasetStats, compute_stats, load_dataset, split_by_time, windows
+from training.dataset import (
+    Dataset,
+    DatasetStats,
+    compute_stats,
+    file_sha256,
+    load_dataset,
+    split_by_time,
+    windows,
+)
 
 
 @dataclass(frozen=True)
@@ -88,14 +95,6 @@ TRAIN_PRESETS: dict[str, dict] = {
     "paper": {},
     "small": {"epochs": 4, "window": 20, "streams": 8, "burn_in": 5, "lr_step_epochs": 2, "checkpoint_every": 2},
 }
-
-
-def file_sha256(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 class Eq7Loss:
@@ -188,6 +187,8 @@ def train(data_path: str | Path, kind: str, out: str | Path, *, model_config: di
                 raise ValueError(f"--resume: {out} was trained with other settings; resume needs the same ones")
             if previous["data"]["sha256"] != provenance["sha256"]:
                 raise ValueError(f"--resume: {out} was trained on other data ({previous['data']['path']})")
+            if previous["train"]["epoch"] >= config.epochs:  # finished already: nothing to resume
+                return {key: previous[key] for key in ("stats", "data", "train")}
             model.load_state_dict(previous["state_dict"])
             optimizer.load_state_dict(previous["resume"]["optimizer"])
             scheduler.load_state_dict(previous["resume"]["scheduler"])
