@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from torch import nn
 
-from training import checkpoint, evaluate
+from training import checkpoint, eval_report, evaluate
 from training.dataset import Dataset, config_hash, save_dataset, split_by_time
 from training.evaluate import (
     EvalError,
@@ -267,7 +267,7 @@ def test_a_diverging_model_is_reported_as_such_not_averaged_away(data):
     summary = evaluate.summarise([fine, result])
     assert summary["k50_qd"]["non_finite"] == 1 and not np.isfinite(summary["k50_qd"]["mean"])
     assert summary["k5_qd"]["non_finite"] == 0 and np.isfinite(summary["k5_qd"]["std"])
-    assert evaluate._fmt(json_safe(summary["k50_qd"])) == "diverged (1/2)"
+    assert eval_report._fmt(json_safe(summary["k50_qd"])) == "diverged (1/2)"
 
 
 # -- data and checkpoints ----------------------------------------------------------------------------------------
