@@ -147,3 +147,20 @@ def test_the_analytic_baseline_is_identified_not_trained(walk_data, tmp_path):
     q = torch.zeros(1, N)
     q_next, qd_next = model(q, q, torch.zeros(1, N))
     assert torch.isfinite(qd_next).all() and not torch.equal(qd_next, q)  # gravity moves a resting leg
+
+
+def test_export_cli_writes_onnx_with_parity_and_the_commands_that_regenerate_it(walk_data, tmp_path):
+    import json
+
+    from training.export import main as export_main
+
+    path, _ = walk_data
+    checkpoint = tmp_path / "p.pt"
+    main(["--data", str(path), "--model", "pinn", "--preset", "small", "--epochs", "2", "--out", str(checkpoint),
+          "--no-progress"])
+    onnx_path = tmp_path / "p.onnx"
+    assert export_main(["--checkpoint", str(checkpoint), "--out", str(onnx_path)]) == 0
+    sidecar = json.loads(onnx_path.with_name("p.onnx.json").read_text())
+    assert sidecar["parity_1000_steps"] <= 1e-5 and sidecar["seed"] == 0 and sidecar["epochs"] == 2
+    assert "bruce-train --data" in sidecar["command"] and "bruce-export --checkpoint" in sidecar["command"]
+    assert sidecar["data"]["sha256"] and sidecar["kind"] == "pinn_step"

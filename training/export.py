@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shlex
 import sys
 import warnings
 from collections import Counter
@@ -220,6 +221,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"{args.checkpoint}: kind {payload['kind']!r} has no ONNX export (pinn, lstm, olnn do)")
     worst = rollout_parity(model, path, payload.get("stats"))
     sidecar = json.loads(sidecar_path(path).read_text())
+    train = payload.get("train", {})
+    steps = [(payload.get("data") or {}).get("collect_command"), train.get("command"),
+             shlex.join(["bruce-export", *(sys.argv[1:] if argv is None else argv)])]
+    sidecar.update(command=" && ".join(step for step in steps if step), seed=(train.get("config") or {}).get("seed"))
     sidecar.update(checkpoint=str(args.checkpoint), checkpoint_sha256=file_sha256(args.checkpoint),
                    data=payload.get("data"), train=payload.get("train", {}).get("config"),
                    epochs=payload.get("train", {}).get("epoch"), parity_1000_steps=worst)

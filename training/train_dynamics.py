@@ -29,6 +29,7 @@ import argparse
 import dataclasses
 import json
 import math
+import shlex
 import sys
 import time
 from dataclasses import dataclass
@@ -159,8 +160,9 @@ def make_optimizer(model: nn.Module, config: TrainConfig):
 
 def train(data_path: str | Path, kind: str, out: str | Path, *, model_config: dict | None = None,
           train_config: TrainConfig | None = None, robot_config=None, resume: bool = False,
-          progress: bool = True) -> dict:
-    """Train a `kind` model on `data_path` and write the checkpoint `out`; returns the final checkpoint dict."""
+          progress: bool = True, command: str | None = None) -> dict:
+    """Train a `kind` model on `data_path` and write the checkpoint `out`; returns the final checkpoint dict.
+    `command` (the bruce-train line) is recorded in the checkpoint so an export can say how to regenerate it."""
     config = train_config or TrainConfig()
     robot_config = robot_config or load_config()
     data = load_dataset(data_path, robot_config)
@@ -180,7 +182,7 @@ def train(data_path: str | Path, kind: str, out: str | Path, *, model_config: di
         start_epoch, history = 0, []
         provenance = {"path": str(data_path), "sha256": file_sha256(data_path),
                       "config_hash": data.metadata.get("config_hash"), "train_fraction": config.train_fraction,
-                      "train_samples": len(train_part)}
+                      "train_samples": len(train_part), "collect_command": data.metadata.get("command")}
         if resume and out.is_file():
             previous = read_checkpoint(out)
             if previous.get("train", {}).get("config") != dataclasses.asdict(config) or previous["kind"] != kind:
@@ -198,7 +200,8 @@ def train(data_path: str | Path, kind: str, out: str | Path, *, model_config: di
 
         def checkpoint(epoch: int, final: bool) -> dict:
             extra = {"stats": stats.to_json(), "data": provenance,
-                     "train": {"config": dataclasses.asdict(config), "epoch": epoch, "history": history}}
+                     "train": {"config": dataclasses.asdict(config), "epoch": epoch, "history": history,
+                               "command": command}}
             if not final:
                 extra["resume"] = {"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
                                    "torch_rng": torch.get_rng_state(), "numpy_rng": rng.bit_generator.state}
@@ -259,7 +262,8 @@ def main(argv: list[str] | None = None) -> int:
         settings["epochs"] = args.epochs
     result = train(args.data, args.model, args.out, model_config=MODEL_PRESETS[args.preset][args.model],
                    train_config=TrainConfig(**settings), robot_config=load_config(args.config) if args.config
-                   else None, resume=args.resume, progress=not args.no_progress)
+                   else None, resume=args.resume, progress=not args.no_progress,
+                   command=shlex.join(["bruce-train", *(sys.argv[1:] if argv is None else argv)]))
     history = result["train"]["history"]
     if not history:
         print(f"bruce-train: analytic identified: {json.dumps(result['identification'])} -> {args.out}")
