@@ -4,12 +4,15 @@ import json
 import os
 import signal
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from bruce_hw.backend import LifecycleState
+from bruce_hw.config import load_config
 from bruce_hw.mock import MujocoBackend
+from runtime.commands import CommandSchedule
 from runtime.inference import ModelError
 from runtime.run import run_session
 
@@ -78,7 +81,26 @@ def test_transfer_pinn_runs_eq9_with_the_pinn(config, stateful_pinn_onnx, tmp_pa
     assert data["sections_us"]["pinn"]["p50"] >= 5  # the network really ran every tick
 
 
-def test_transfer_pinn_without_a_model_fails_before_the_robot_moves(config):
+def test_the_committed_pinn_is_the_default_and_walks_the_mock_with_eq9(config, tmp_path):
+    """`--transfer pinn` without --pinn runs the committed, trained PINN (pinn.model), and its sidecar says how to
+    regenerate it; the policy walks with Eq. 9 in the nominal mock, where the PINN's reference is what the
+    simulator does anyway."""
+    path = config.models.pinn
+    assert path is not None and path.is_file()
+    sidecar = json.loads(Path(f"{path}.json").read_text())
+    assert sidecar["kind"] == "pinn_step" and "bruce-train" in sidecar["command"]
+    assert sidecar["parity_1000_steps"] <= 1e-5
+    stats = tmp_path / "stats.json"
+    summary = run_session(MujocoBackend(config), config, duration=6.0, realtime=False, stats_path=stats,
+                          transfer="pinn", commands=CommandSchedule.constant(0.3, 0.0, 0.0))
+    data = json.loads(stats.read_text())
+    assert data["transfer"] == "pinn" and not summary.truth.fell and data["sections_us"]["pinn"]["p50"] >= 5
+    walked = np.subtract(summary.truth.base_xy_end, summary.truth.base_xy_start)
+    assert walked[0] > 0.8  # 0.3 m/s after a 0.5 s ramp, like Eq. 8 alone (1.02 m); a PINN at odds with the mock trips
+
+
+def test_transfer_pinn_without_a_model_fails_before_the_robot_moves():
+    config = load_config(overrides=["pinn.model=null"])
     backend = SpyMock(config)
     with pytest.raises(ModelError, match="--transfer pinn needs a PINN model"):
         run_session(backend, config, duration=0.1, realtime=False, transfer="pinn")

@@ -11,9 +11,10 @@ caller feeds h', c' back (onnxruntime is stateless). Training unrolls the same m
 Eq. 7. Normalisation constants are buffers inside the module, so torch and onnxruntime apply identical scaling.
 M^-1 is assembled and applied, never inverted: with A = sqrt(dt) (L + bI), qdd dt = A^T (A (tau + f_n)).
 
-For export, `folded()` returns the same module with its constant affine stages folded into the adjacent weights
-(input normalisation into the ResNet's first layer and the LSTM's input weights, the head's denormalisation
-into the head, the tril placement, bI and sqrt(dt) into the ResNet's output layer). Same math, 29 instead of 38
+For export, `folded()` returns the same module with its constant scaling stages folded into the adjacent weights
+(the inputs' 1/std into the ResNet's first layer and the LSTM's input weights, the head's denormalisation into
+the head, the tril placement, bI and sqrt(dt) into the ResNet's output layer; the centring stays, because a
+mean folded into a bias cancels large terms in float32). Same math, 30 instead of 38
 kernels after onnxruntime's fusions: at 1 kHz the per-kernel cost, not FLOPs, sets the tick's latency (research
 anchors §9).
 """
@@ -182,7 +183,8 @@ class PinnStep(nn.Module):
         return flat if self.is_folded else (flat @ self.placement + self.b_eye) * self.sqrt_dt
 
     def _resnet_input(self, q: torch.Tensor) -> torch.Tensor:
-        return q if self.is_folded else (q - self.q_mean) / self.q_std
+        centred = q - self.q_mean
+        return centred if self.is_folded else centred / self.q_std
 
     def minv(self, q: torch.Tensor) -> torch.Tensor:
         """M^-1(q) = (L + bI)^T (L + bI), [..., n, n] (Eq. 5), for raw joint angles q [..., n]."""
@@ -197,16 +199,14 @@ class PinnStep(nn.Module):
         q', qd' [W, B, n] and the state after the last step."""
         n = self.n_joints
         window = q.dim() == 3
-        features = torch.cat([q, qd, tau], dim=-1)  # [..., 3n]
-        if self.is_folded:
-            if not torch.jit.is_tracing() and (window or q.shape[0] != 1):  # the export traces batch 1
-                raise ValueError(f"a folded PinnStep is the exported tick and takes q [1, n], got {list(q.shape)}")
-            q_in = q
-        else:
-            mean = torch.cat([self.q_mean, self.qd_mean, self.tau_mean])
-            std = torch.cat([self.q_std, self.qd_std, self.tau_std])
-            features = (features - mean) / std
-            q_in = features[..., :n]
+        if self.is_folded and not torch.jit.is_tracing() and (window or q.shape[0] != 1):  # export traces batch 1
+            raise ValueError(f"a folded PinnStep is the exported tick and takes q [1, n], got {list(q.shape)}")
+        # Centred here in both forms (folding the mean into a bias would cancel large terms in float32); the
+        # division by the std is folded into the weights that read the features.
+        features = torch.cat([q, qd, tau], dim=-1) - torch.cat([self.q_mean, self.qd_mean, self.tau_mean])
+        if not self.is_folded:
+            features = features / torch.cat([self.q_std, self.qd_std, self.tau_std])
+        q_in = features[..., :n]
 
         factor = self._scaled_factor(q_in)  # sqrt(dt) (L + bI), flattened
 
@@ -232,31 +232,22 @@ class PinnStep(nn.Module):
 
     @torch.no_grad()
     def folded(self) -> PinnStep:
-        """An inference copy with the affine stages folded into the weights (module docstring); same outputs to
-        float32 rounding. Its normalisation buffers are reset to identity, so nothing is applied twice."""
+        """An inference copy with the scaling stages folded into the weights (module docstring); same outputs to
+        float32 rounding. Its stds and scales are reset to 1, so nothing is applied twice; the means stay."""
         if self.is_folded:
             return copy.deepcopy(self)
         out = copy.deepcopy(self).eval()
         n = self.n_joints
-        # Input normalisation x_norm = (x - m) / s folded into every linear map that reads it: W x_norm + b =
-        # (W / s) x + (b - W m / s). The first residual layer's projection had no bias; it gets one.
+        # Input scaling x_norm = (x - m) / s: the 1 / s folded into every linear map that reads x_norm (the
+        # centring stays in the graph, see forward).
         first = out.resnet.hidden[0] if len(out.resnet.hidden) else None
         readers = [first.linear, first.skip] if first is not None else [out.resnet.out]
         for i, layer in enumerate(readers):
             if isinstance(layer, nn.Identity):  # first layer with width n: the skip is x_norm itself
-                layer = readers[i] = first.skip = nn.Linear(n, n).to(self.b_eye.dtype)
+                layer = readers[i] = first.skip = nn.Linear(n, n, bias=False).to(self.b_eye.dtype)
                 layer.weight.copy_(torch.eye(n))
-                layer.bias.zero_()
-            weight = layer.weight.clone()
-            if layer.bias is None:
-                layer.bias = nn.Parameter(torch.zeros(layer.out_features, dtype=weight.dtype))
-            layer.weight.copy_(weight / self.q_std)
-            layer.bias.sub_(weight @ (self.q_mean / self.q_std))
-        mean = torch.cat([self.q_mean, self.qd_mean, self.tau_mean])
-        std = torch.cat([self.q_std, self.qd_std, self.tau_std])
-        weight_ih = out.lstm.weight_ih_l0.clone()
-        out.lstm.weight_ih_l0.copy_(weight_ih / std)
-        out.lstm.bias_ih_l0.sub_(weight_ih @ (mean / std))
+            layer.weight.div_(self.q_std)
+        out.lstm.weight_ih_l0.div_(torch.cat([self.q_std, self.qd_std, self.tau_std]))
         # Head denormalisation.
         scale = torch.cat([self.fn_scale, self.dq_scale])
         out.head.weight.mul_(scale[:, None])
@@ -267,8 +258,8 @@ class PinnStep(nn.Module):
         tril.weight.copy_(self.placement.T @ last.weight * self.sqrt_dt)
         tril.bias.copy_((last.bias @ self.placement + self.b_eye) * self.sqrt_dt)
         out.resnet.out = tril
-        out.set_normalisation(q_mean=np.zeros(n), q_std=np.ones(n), qd_mean=np.zeros(n), qd_std=np.ones(n),
-                              tau_mean=np.zeros(n), tau_std=np.ones(n), fn_scale=np.ones(n), dq_scale=np.ones(n))
+        out.set_normalisation(q_std=np.ones(n), qd_std=np.ones(n), tau_std=np.ones(n), fn_scale=np.ones(n),
+                              dq_scale=np.ones(n))
         out.is_folded = True
         return out
 
