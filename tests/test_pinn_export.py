@@ -283,3 +283,20 @@ def test_window_call_equals_ticks_carried_one_by_one():
             torch.testing.assert_close(qd_w[t], qd_t, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close((h_w, c_w), (h, c), rtol=1e-12, atol=1e-12)
     assert (qd_w[1:] - qd_w[:1]).abs().amax() > 1e-3  # the steps differ: the comparison is not of constants
+
+
+def test_rollout_parity_holds_for_the_export_and_catches_a_different_model(exported_pinn):
+    """bruce-export's check: 1000 ticks with the LSTM state carried on each side. It passes for the exported
+    model and fails for one that differs slightly (in the LSTM, whose effect reaches the outputs only through the
+    carried state and the small head, and in M^-1)."""
+    import copy
+
+    from training.export import rollout_parity
+
+    model, path = exported_pinn
+    assert rollout_parity(model, path) <= 1e-5
+    for name in ("lstm.bias_hh_l0", "resnet.out.bias"):
+        other = copy.deepcopy(model)
+        with torch.no_grad():
+            other.get_parameter(name).add_(0.02)
+        assert rollout_parity(other, path) > 1e-5, name

@@ -171,10 +171,11 @@ def make_random_policy(obs_dim: int, n_joints: int, hidden: Sequence[int] = (64,
 
 def rollout_parity(model: nn.Module, path: str | Path, stats: dict | None = None, steps: int = 1000,
                    seed: int = 0) -> float:
-    """Worst |torch - onnxruntime| of q' and qd' over `steps` ticks that each side runs with its own recurrent
-    state (h, c) carried from tick to tick (so a state error shows in the later outputs), on the same inputs: smooth seeded joint trajectories around the training statistics
-    (`stats`, a DatasetStats.to_json() dict; unit scales without). The inputs are shared rather than fed back:
-    a learnt model run open loop amplifies float32 rounding like any chaotic system, so a fed-back comparison
+    """Worst |torch - onnxruntime| over `steps` ticks that each side runs with its own recurrent state (h, c)
+    carried from tick to tick: of q' and qd' (absolute) and of the state (relative to max(1, |value|): an LSTM's
+    cell state grows to tens, where float32 resolves ~2e-6). The inputs are smooth seeded joint trajectories around
+    the training statistics (`stats`, a DatasetStats.to_json() dict; unit scales without), shared rather than fed
+    back: a learnt model run open loop amplifies float32 rounding like any chaotic system, so a fed-back comparison
     measures its Lyapunov exponent, not the export."""
     n = model.n_joints
     rng = np.random.default_rng(seed)
@@ -196,7 +197,9 @@ def rollout_parity(model: nn.Module, path: str | Path, stats: dict | None = None
             q_t, qd_t, *torch_state = model(torch.from_numpy(q), torch.from_numpy(qd), torch.from_numpy(tau),
                                             *torch_state)
             q_o, qd_o, *ort_state = session.run(outputs, dict(zip(names, [q, qd, tau, *ort_state], strict=True)))
-            worst = max(worst, float(np.abs(q_t.numpy() - q_o).max()), float(np.abs(qd_t.numpy() - qd_o).max()))
+            worst = max(worst, float(np.abs(q_t.numpy() - q_o).max()), float(np.abs(qd_t.numpy() - qd_o).max()),
+                        *(float((np.abs(a.numpy() - b) / np.maximum(1.0, np.abs(b))).max())
+                          for a, b in zip(torch_state, ort_state, strict=True)))
     return worst
 
 
