@@ -5,7 +5,7 @@ dicts only):
 
 | key            | what                                                                                  |
 |----------------|---------------------------------------------------------------------------------------|
-| `kind`         | a key of `MODEL_KINDS` ("pinn", "lstm", "olnn", "analytic")                           |
+| `kind`         | a key of `MODEL_KINDS` ("pinn", "lstm", "olnn", "analytic")                          |
 | `config`       | the model's config dataclass as a dict (`dataclasses.asdict`)                        |
 | `state_dict`   | the model's parameters and buffers (normalisation included)                          |
 | `stats`        | the training split's `DatasetStats.to_json()`                                        |
@@ -32,15 +32,22 @@ from torch import nn
 class ModelKind:
     model: str   # "module:Class" of the nn.Module
     config: str  # "module:Class" of its frozen config dataclass
+    exporter: str | None = None  # "module:function" writing one tick as ONNX: (model, path) -> path; None: none
 
     def classes(self) -> tuple[type[nn.Module], type]:
         return _resolve(self.model), _resolve(self.config)
 
+    def onnx_exporter(self):
+        """The kind's ONNX exporter, or None where the kind has no ONNX form."""
+        return None if self.exporter is None else _resolve(self.exporter)
 
+
+# The LSTM baseline has the PINN's tensor names, so the PINN's exporter (and the runtime's OnnxPinn) serve it too.
 MODEL_KINDS: dict[str, ModelKind] = {
-    "pinn": ModelKind("training.pinn:PinnStep", "training.pinn:PinnConfig"),
-    "lstm": ModelKind("training.lstm_baseline:LstmStep", "training.lstm_baseline:LstmConfig"),
-    "olnn": ModelKind("training.olnn:OlnnStep", "training.olnn:OlnnConfig"),
+    "pinn": ModelKind("training.pinn:PinnStep", "training.pinn:PinnConfig", "training.export:export_pinn_onnx"),
+    "lstm": ModelKind("training.lstm_baseline:LstmStep", "training.lstm_baseline:LstmConfig",
+                      "training.export:export_pinn_onnx"),
+    "olnn": ModelKind("training.olnn:OlnnStep", "training.olnn:OlnnConfig", "training.olnn:export_olnn_onnx"),
     "analytic": ModelKind("training.analytic:AnalyticModel", "training.analytic:AnalyticConfig"),
 }
 

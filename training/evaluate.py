@@ -39,15 +39,15 @@ boundaries, falls, the split boundary). A *valid transition* is t -> t+1 inside 
   given (`--onnx`) or the model's kind has an exporter: the runtime's `OnnxPinn.step` for the PINN signature
   (q, qd, tau, h, c), otherwise one `run_with_iobinding` on fixed bound buffers, the recurrent state ping-ponged
   between two bindings. Each call carries the state into the next with a fixed recorded input; contenders are
-  interleaved in blocks, on one pinned core, with the garbage collector off. Median and p99 in µs. An ORT/torch
-  parity check over 200 teacher-forced steps is reported next to it.
+  interleaved in blocks, on one pinned core, with the garbage collector off. Median and p99 in µs. The ORT/torch
+  parity over 200 recorded steps (`training.export.rollout_parity`) is reported next to it.
 - Several checkpoints for one model name (`--model lstm=a.pt,b.pt,c.pt`, e.g. seeds) are evaluated alike and
   summarised as mean ± std across them (std with ddof = 1; none for a single checkpoint).
 
 **Checkpoints**: `training.checkpoint` files (a `torch.save`d dict with "kind", "config", "state_dict", ...; its
 `MODEL_KINDS` registry builds the model), read with `training.checkpoint.load_model_checkpoint`. The ONNX file for
-the onnxruntime timing comes from `--onnx` or from the kind's exporter in `ONNX_EXPORTERS`. A checkpoint whose
-"data" record names another file's SHA-256 is flagged (its test split here may overlap what it trained on).
+the onnxruntime timing comes from `--onnx` or from the kind's exporter in that registry. A checkpoint whose "data"
+record names another file's SHA-256 is flagged (its test split here may overlap what it trained on).
 The whole run uses one torch thread: the rollouts are long chains of small calls, which a second thread slows.
 
 **Outputs** in --out: `dynamics_eval.json` (every number, the data file's SHA-256, the split, K list, start points,
@@ -60,7 +60,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import importlib
 import json
 import math
 import os
@@ -78,9 +77,10 @@ import torch
 from torch import nn
 
 from bruce_hw.config import ConfigError, RobotConfig
-from training.checkpoint import CheckpointError, load_model_checkpoint
+from training.checkpoint import MODEL_KINDS, CheckpointError, load_model_checkpoint
 from training.dataset import DatasetError, file_sha256, load_dataset, split_by_time
 from training.eval_report import BOUND_FACTOR, bar_k, json_safe, markdown_table, plot_fig4, plot_fig5
+from training.export import rollout_parity
 
 PARITY_STEPS = 200
 ONE_STEP_BATCH = 4096  # stateless models: transitions per forward call
@@ -189,27 +189,6 @@ def select_start_points(runs: Sequence[tuple[int, int]], warmup: int, horizon: i
 
 
 # -- models ----------------------------------------------------------------------------------------------------
-# The one-tick ONNX exporter of each kind, for the onnxruntime timing ("module:function", resolved when used). The
-# LSTM baseline has the PINN's tensor names, so the PINN's exporter and `runtime.inference.OnnxPinn` serve it too;
-# the analytic model is not exported.
-ONNX_EXPORTERS: dict[str, str | Callable] = {
-    "pinn": "training.export:export_pinn_onnx",
-    "lstm": "training.export:export_pinn_onnx",
-    "olnn": "training.olnn:export_olnn_onnx",
-}
-
-
-def resolve(target: str | Callable, what: str) -> Callable:
-    """A "module:attribute" string -> the attribute; a callable is returned as it is."""
-    if not isinstance(target, str):
-        return target
-    module_name, _, attribute = target.partition(":")
-    try:
-        return getattr(importlib.import_module(module_name), attribute)
-    except (ImportError, AttributeError) as exc:
-        raise EvalError(f"{what}: cannot resolve {target!r} ({exc})") from exc
-
-
 @dataclass
 class LoadedModel:
     kind: str
@@ -471,32 +450,6 @@ def onnx_tick(path: Path, n_joints: int, q: np.ndarray, qd: np.ndarray, tau: np.
     return BoundOnnxTick(path, q, qd, tau), "run_with_iobinding (bound buffers)"
 
 
-def onnx_parity(model: nn.Module, path: Path, data: EvalData, first: int, steps: int) -> float:
-    """Max |ORT - torch| over q_next, qd_next of `steps` teacher-forced batch-1 steps from a zero state."""
-    import onnxruntime as ort
-
-    from runtime.inference import session_options
-
-    session = ort.InferenceSession(str(path), session_options(), providers=["CPUExecutionProvider"])
-    inputs = {t.name: t for t in session.get_inputs()}
-    state_names = [name for name in inputs if name not in ("q", "qd", "tau")]
-    ort_state = {name: np.zeros(inputs[name].shape, np.float32) for name in state_names}
-    torch_state = model.initial_state(1)
-    worst = 0.0
-    with torch.no_grad():
-        for t in range(first, first + steps):
-            feeds = {"q": data.q[t:t + 1], "qd": data.qd[t:t + 1], "tau": data.tau[t:t + 1]}
-            feeds = {name: v.astype(np.float32) for name, v in feeds.items()}
-            out = dict(zip([o.name for o in session.get_outputs()],
-                           session.run(None, {**feeds, **ort_state}), strict=True))
-            ort_state = {name: out[f"{name}_next"] for name in state_names}
-            q_next, qd_next, *torch_state = model(*(torch.from_numpy(feeds[k]) for k in ("q", "qd", "tau")),
-                                                  *torch_state)
-            worst = max(worst, float(np.max(np.abs(out["q_next"] - q_next.numpy()))),
-                        float(np.max(np.abs(out["qd_next"] - qd_next.numpy()))))
-    return worst
-
-
 def timed_calls(step: Callable[[], Any], calls: int) -> np.ndarray:
     out = np.empty(calls)
     clock = time.perf_counter_ns
@@ -541,11 +494,10 @@ def time_contenders(contenders: dict[str, Callable[[], Any]], calls: int, blocks
 
 
 def export_for_timing(loaded: LoadedModel, directory: Path) -> Path | None:
-    exporter = ONNX_EXPORTERS.get(loaded.kind)
+    exporter = MODEL_KINDS[loaded.kind].onnx_exporter()
     if exporter is None:
         return None
-    path = directory / f"{loaded.kind}_{loaded.path.stem}.onnx"
-    return Path(resolve(exporter, f"exporter of kind {loaded.kind!r}")(loaded.model, path))
+    return Path(exporter(loaded.model, directory / f"{loaded.kind}_{loaded.path.stem}.onnx"))
 
 
 def measure_compute(models: dict[str, LoadedModel], onnx_files: dict[str, Path | None], data: EvalData,
@@ -572,7 +524,8 @@ def measure_compute(models: dict[str, LoadedModel], onnx_files: dict[str, Path |
             entry["ort"] = {**stats[(name, "ort")], "call": paths[name],
                             "file": "(exported for this run)" if name in exported else str(onnx_path),
                             "sha256": file_sha256(onnx_path),
-                            "parity_max_abs": onnx_parity(loaded.model, onnx_path, data, sample, steps),
+                            "parity_max_abs": rollout_parity(loaded.model, onnx_path, [
+                                x[sample:sample + steps] for x in (data.q, data.qd, data.tau)]),
                             "parity_steps": steps}
         compute[name] = entry
     return compute

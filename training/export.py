@@ -24,6 +24,7 @@ import onnxruntime
 import torch
 from torch import nn
 
+from training.checkpoint import kind_of
 from training.dataset import file_sha256
 from training.lstm_baseline import LstmStep
 from training.pinn import PinnStep, make_random_pinn
@@ -130,7 +131,7 @@ def export_pinn_onnx(model: PinnStep | LstmStep, path: str | Path, *, opset: int
     dtypes = {p.dtype for p in model.parameters()}
     if dtypes != {torch.float32}:
         raise ExportError(f"the model's parameters are {sorted(map(str, dtypes))}; export a float32 model")
-    kind = {PinnStep: "pinn_step", LstmStep: "lstm_step"}[type(model)]
+    kind = f"{kind_of(model)}_step"
     return _export_checked(
         model.folded(), example, path,
         input_names=("q", "qd", "tau", "h", "c"), output_names=("q_next", "qd_next", "h_next", "c_next"),
@@ -169,31 +170,38 @@ def make_random_policy(obs_dim: int, n_joints: int, hidden: Sequence[int] = (64,
     return nn.Sequential(*layers)
 
 
-def rollout_parity(model: nn.Module, path: str | Path, stats: dict | None = None, steps: int = 1000,
-                   seed: int = 0) -> float:
-    """Worst |torch - onnxruntime| over `steps` ticks that each side runs with its own recurrent state (h, c)
-    carried from tick to tick: of q' and qd' (absolute) and of the state (relative to max(1, |value|): an LSTM's
-    cell state grows to tens, where float32 resolves ~2e-6). The inputs are smooth seeded joint trajectories around
-    the training statistics (`stats`, a DatasetStats.to_json() dict; unit scales without), shared rather than fed
-    back: a learnt model run open loop amplifies float32 rounding like any chaotic system, so a fed-back comparison
-    measures its Lyapunov exponent, not the export."""
-    n = model.n_joints
+def smooth_inputs(n_joints: int, dt: float, stats: dict | None = None, steps: int = 1000, seed: int = 0
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(q, qd, tau) float32 [steps, n_joints]: smooth seeded sinusoids of one std about the training means
+    (`stats`, a DatasetStats.to_json() dict; zero means and unit stds without)."""
     rng = np.random.default_rng(seed)
-    stat = {key: np.asarray(stats[key]) if stats else np.full(n, float(key.endswith("std")))
+    stat = {key: np.asarray(stats[key]) if stats else np.full(n_joints, float(key.endswith("std")))
             for key in ("q_mean", "q_std", "qd_mean", "qd_std", "tau_mean", "tau_std")}
-    t = np.arange(steps)[:, None] * model.dt
-    frequency, phase = rng.uniform(0.5, 3.0, (3, n)), rng.uniform(0, 2 * np.pi, (3, n))
+    t = np.arange(steps)[:, None] * dt
+    frequency, phase = rng.uniform(0.5, 3.0, (3, n_joints)), rng.uniform(0, 2 * np.pi, (3, n_joints))
     wave = np.sin(2 * np.pi * frequency[:, None] * t[None] + phase[:, None])  # [3, steps, n]
-    inputs = [(stat[f"{k}_mean"] + stat[f"{k}_std"] * wave[i]).astype(np.float32)
-              for i, k in enumerate(("q", "qd", "tau"))]
-    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    names = [i.name for i in session.get_inputs()]
+    q, qd, tau = ((stat[f"{k}_mean"] + stat[f"{k}_std"] * wave[i]).astype(np.float32)
+                  for i, k in enumerate(("q", "qd", "tau")))
+    return q, qd, tau
+
+
+def rollout_parity(model: nn.Module, path: str | Path, inputs: Sequence[np.ndarray]) -> float:
+    """Worst |torch - onnxruntime| over the ticks of `inputs` ((q, qd, tau), each [steps, n_joints]), which each
+    side runs with its own recurrent state (h, c) carried from tick to tick: of q' and qd' (absolute) and of the
+    state (relative to max(1, |value|): an LSTM's cell state grows to tens, where float32 resolves ~2e-6). The
+    inputs are shared rather than fed back: a learnt model run open loop amplifies float32 rounding like any
+    chaotic system, so a fed-back comparison measures its Lyapunov exponent, not the export. The session is the
+    runtime's (`runtime.inference.open_session`)."""
+    from runtime.inference import open_session
+
+    session = open_session(path, "dynamics")
+    names = [i.name for i in session.get_inputs()]  # q, qd, tau, then the state: the export's checked order
     outputs = [o.name for o in session.get_outputs()]
     torch_state = list(model.initial_state(1))
     ort_state = [s.numpy().copy() for s in torch_state]
     worst = 0.0
     with torch.no_grad():
-        for q, qd, tau in zip(*(x[:, None] for x in inputs), strict=True):
+        for q, qd, tau in zip(*(np.asarray(x, np.float32)[:, None] for x in inputs), strict=True):
             q_t, qd_t, *torch_state = model(torch.from_numpy(q), torch.from_numpy(qd), torch.from_numpy(tau),
                                             *torch_state)
             q_o, qd_o, *ort_state = session.run(outputs, dict(zip(names, [q, qd, tau, *ort_state], strict=True)))
@@ -207,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     """bruce-export: a trained checkpoint (bruce-train) -> ONNX for the runtime, with a parity check."""
     import argparse
 
-    from training.checkpoint import load_model_checkpoint
+    from training.checkpoint import MODEL_KINDS, load_model_checkpoint
 
     parser = argparse.ArgumentParser(prog="bruce-export", description="Export a trained dynamics checkpoint to "
                                      "ONNX (one tick per call, explicit LSTM state) and check torch/onnxruntime "
@@ -217,14 +225,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tolerance", type=float, default=1e-5, help="worst allowed |torch - ORT| (default 1e-5)")
     args = parser.parse_args(argv)
     model, payload = load_model_checkpoint(args.checkpoint)
-    if payload["kind"] in ("pinn", "lstm"):
-        path = export_pinn_onnx(model, args.out)
-    elif payload["kind"] == "olnn":
-        from training.olnn import export_olnn_onnx
-        path = export_olnn_onnx(model, args.out)
-    else:
-        parser.error(f"{args.checkpoint}: kind {payload['kind']!r} has no ONNX export (pinn, lstm, olnn do)")
-    worst = rollout_parity(model, path, payload.get("stats"))
+    exporter = MODEL_KINDS[payload["kind"]].onnx_exporter()
+    if exporter is None:
+        exportable = sorted(kind for kind, entry in MODEL_KINDS.items() if entry.exporter)
+        parser.error(f"{args.checkpoint}: kind {payload['kind']!r} has no ONNX export ({', '.join(exportable)} do)")
+    path = Path(exporter(model, args.out))
+    worst = rollout_parity(model, path, smooth_inputs(model.n_joints, model.dt, payload.get("stats")))
     sidecar = json.loads(sidecar_path(path).read_text())
     train = payload.get("train", {})
     steps = [(payload.get("data") or {}).get("collect_command"), train.get("command"),
