@@ -46,8 +46,8 @@ def test_increments_are_scaled_by_the_training_spread():
         model.head.bias.fill_(1.0)  # a unit normalised increment on every output
     q, qd, tau = torch.zeros(1, N), torch.zeros(1, N), torch.zeros(1, N)
     q_next, qd_next, _, _ = model(q, qd, tau, *model.initial_state(1))
-    torch.testing.assert_close(q_next[0].double(), torch.as_tensor(stats.qd_std * model.dt))
-    torch.testing.assert_close(qd_next[0].double(), torch.as_tensor(stats.qd_inc_std))
+    torch.testing.assert_close(q_next[0].double(), torch.tensor(stats.qd_std * model.dt))
+    torch.testing.assert_close(qd_next[0].double(), torch.tensor(stats.qd_inc_std))
 
 
 def test_window_equals_ticks_and_folded_equals_model():

@@ -169,9 +169,12 @@ def train(data_path: str | Path, kind: str, out: str | Path, *, model_config: di
     train_part, _ = split_by_time(data, config.train_fraction)
     stats = compute_stats(train_part)
     out = Path(out)
+    provenance = {"path": str(data_path), "sha256": file_sha256(data_path),
+                  "config_hash": data.metadata.get("config_hash"), "train_fraction": config.train_fraction,
+                  "train_samples": len(train_part), "collect_command": data.metadata.get("command")}
 
     if kind == "analytic":  # no gradient training: least squares on the same training part
-        return _identify_analytic(train_part, stats, robot_config, out, data_path, config)
+        return _identify_analytic(train_part, stats, robot_config, out, provenance, config, command)
 
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
@@ -180,9 +183,6 @@ def train(data_path: str | Path, kind: str, out: str | Path, *, model_config: di
         optimizer, scheduler = make_optimizer(model, config)
         rng = np.random.default_rng(config.seed)
         start_epoch, history = 0, []
-        provenance = {"path": str(data_path), "sha256": file_sha256(data_path),
-                      "config_hash": data.metadata.get("config_hash"), "train_fraction": config.train_fraction,
-                      "train_samples": len(train_part), "collect_command": data.metadata.get("command")}
         if resume and out.is_file():
             previous = read_checkpoint(out)
             if previous.get("train", {}).get("config") != dataclasses.asdict(config) or previous["kind"] != kind:
@@ -227,17 +227,15 @@ def train(data_path: str | Path, kind: str, out: str | Path, *, model_config: di
         return checkpoint(config.epochs, final=True)
 
 
-def _identify_analytic(train_part: Dataset, stats: DatasetStats, robot_config, out: Path, data_path,
-                       config: TrainConfig) -> dict:
+def _identify_analytic(train_part: Dataset, stats: DatasetStats, robot_config, out: Path, provenance: dict,
+                       config: TrainConfig, command: str | None) -> dict:
     """The analytic baseline: identified by least squares (deterministic; the seed only draws the states of its
     positive-definiteness check), saved as a checkpoint like the trained models."""
     from training.analytic import AnalyticConfig, identify_dataset
 
     model = identify_dataset(train_part, AnalyticConfig.from_robot_config(robot_config), seed=config.seed)
-    extra = {"stats": stats.to_json(),
-             "data": {"path": str(data_path), "sha256": file_sha256(data_path), "train_fraction": config.train_fraction,
-                      "config_hash": train_part.metadata.get("config_hash"), "train_samples": len(train_part)},
-             "train": {"config": dataclasses.asdict(config), "epoch": 0, "history": []},
+    extra = {"stats": stats.to_json(), "data": provenance,
+             "train": {"config": dataclasses.asdict(config), "epoch": 0, "history": [], "command": command},
              "identification": model.identification.as_dict()}
     save_checkpoint(out, model, **extra)
     return extra
