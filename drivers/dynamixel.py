@@ -253,6 +253,13 @@ class PacketParser:
                 self._crc_failed_ids.append(buf[4])
                 del buf[:1]
                 continue
+            inner = buf.find(HEADER, 7, end - 2)
+            if 0 <= inner <= end - 2 - len(HEADER):
+                # A header inside the (stuffed) body: this packet was cut short and a later one's bytes completed
+                # it, with a CRC that matches by chance (1 in 65536): the packet starts at that header.
+                self.stats.reject("truncated")
+                del buf[:inner]
+                continue
             dxl_id, body = buf[4], unstuff(buf[7:end - 2])
             del buf[:end]
             if dxl_id > MAX_ID and dxl_id != BROADCAST_ID:
