@@ -1,5 +1,6 @@
 """The PINN step (Eq. 4-6) and its ONNX export: structure of M^-1, the integrator, the LSTM state, torch/ORT parity."""
 
+import copy
 import hashlib
 import json
 
@@ -128,6 +129,62 @@ def test_set_normalisation_rejects_bad_values_and_changes_nothing():
         model.set_normalisation(q_scale=np.ones(N))  # type: ignore[call-arg]
 
 
+def stopped_pair(seed: int) -> tuple[PinnStep, PinnStep, torch.Tensor, torch.Tensor]:
+    """The same random PINN without and with a joint-range stop at [lower, upper]."""
+    free = make_random_pinn(seed=seed)
+    random_normalisation(free, seed=seed)
+    randomise_head(free, scale=0.3, seed=seed)
+    lower, upper = torch.linspace(-0.6, -0.2, N), torch.linspace(0.2, 0.6, N)
+    stopped = copy.deepcopy(free)
+    stopped.set_joint_stop(lower.numpy(), upper.numpy())
+    return free, stopped, lower, upper
+
+
+def test_joint_stop_puts_a_leaving_joint_on_its_stop_at_rest_and_leaves_the_others_alone():
+    free, stopped, lower, upper = stopped_pair(seed=12)
+    q = (lower + upper) / 2 + torch.rand(64, N, generator=torch.Generator().manual_seed(1)) * (upper - lower) * 0.9 \
+        - (upper - lower) * 0.45
+    qd = torch.randn(64, N, generator=torch.Generator().manual_seed(2)) * 300.0  # large enough that some leave in 1 ms
+    tau = torch.randn(64, N, generator=torch.Generator().manual_seed(3))
+    state = free.initial_state(64)
+    with torch.no_grad():
+        q_free, qd_free, h_free, c_free = free(q, qd, tau, *state)
+        q_next, qd_next, h_next, c_next = stopped(q, qd, tau, *state)
+    left = (q_free < lower) | (q_free > upper)
+    assert 0.05 < left.float().mean() < 0.95  # both cases occur
+    assert torch.equal(q_next[left], torch.where(q_free < lower, lower, upper)[left])
+    assert not qd_next[left].any()
+    assert torch.equal(q_next[~left], q_free[~left]) and torch.equal(qd_next[~left], qd_free[~left])
+    assert torch.equal(h_next, h_free) and torch.equal(c_next, c_free)
+
+
+def test_joint_stop_evaluates_the_network_at_the_nearest_posture_in_range():
+    free, stopped, lower, upper = stopped_pair(seed=13)
+    q_out = torch.cat([upper[:5] + 1.0, lower[5:] - 2.0]).unsqueeze(0)  # every joint outside its range
+    qd, tau = torch.zeros(1, N), torch.randn(1, N, generator=torch.Generator().manual_seed(4))
+    with torch.no_grad():
+        inside = free(torch.clamp(q_out, lower, upper), qd, tau, *free.initial_state(1))
+        result = stopped(q_out, qd, tau, *stopped.initial_state(1))
+    for a, b in zip(inside[2:], result[2:], strict=True):  # the LSTM read the clamped q
+        assert torch.equal(a, b)
+    moving = (result[0] > lower) & (result[0] < upper)  # joints the step moved back inside (not stopped again)
+    assert moving.any() and (~moving).any()
+    assert torch.equal(result[1][moving], inside[1][moving])  # qd' from M^-1 at the clamped q
+    assert not result[1][~moving].any()
+    torch.testing.assert_close(stopped.minv(torch.clamp(q_out, lower, upper)), free.minv(torch.clamp(q_out, lower,
+                                                                                                     upper)))
+
+
+def test_set_joint_stop_rejects_bad_ranges_and_changes_nothing():
+    model = make_random_pinn()
+    for lower, upper, message in ((np.zeros(N + 1), np.ones(N + 1), "shape"),
+                                  (np.r_[np.zeros(N - 1), np.nan], np.ones(N), "non-finite"),
+                                  (np.zeros(N), np.r_[np.ones(N - 1), 0.0], "lower must be < upper")):
+        with pytest.raises(ValueError, match=message):
+            model.set_joint_stop(lower, upper)
+    assert torch.isinf(model.q_stop_lower).all() and torch.isinf(model.q_stop_upper).all()
+
+
 def test_lstm_state_carries_between_calls():
     model = make_random_pinn(seed=4)
     randomise_head(model, scale=0.5, seed=4)
@@ -183,6 +240,7 @@ def exported_pinn(tmp_path_factory):
     model = make_random_pinn(seed=7)
     random_normalisation(model, seed=7)
     randomise_head(model, scale=0.1, seed=7)
+    model.set_joint_stop(np.full(N, -0.45), np.full(N, 0.45))  # reached in the closed-loop parity run
     path = export_pinn_onnx(model, tmp_path_factory.mktemp("pinn") / "pinn.onnx")
     return model, path
 
@@ -219,6 +277,7 @@ def test_onnx_closed_loop_parity_1000_steps(exported_pinn):
     torch_state = [torch.from_numpy(q0), torch.zeros(1, N), *model.initial_state(1)]
     ort_state = [q0, np.zeros((1, N), np.float32), h0, c0]
     worst = np.zeros(4)
+    stopped_ticks = 0
     with torch.no_grad():
         for noise_t in noise:
             tau_torch = torch.from_numpy(noise_t) - kd * torch_state[1]
@@ -228,6 +287,8 @@ def test_onnx_closed_loop_parity_1000_steps(exported_pinn):
                                                                       *ort_state[2:]], strict=True)))
             errors = [np.abs(t.numpy() - o).max() for t, o in zip(torch_state, ort_state, strict=True)]
             worst = np.maximum(worst, errors)
+            stopped_ticks += bool((torch_state[0].abs() == model.q_stop_upper).any())
+    assert stopped_ticks > 0  # the joint-range stop acted, in both runtimes
     assert np.all(np.isfinite(torch_state[0].numpy())) and np.abs(torch_state[1].numpy()).max() < 10
     assert np.abs(torch_state[0].numpy() - q0).max() > 1e-3  # it moved, so parity is not trivially zero vs zero
     assert worst.max() <= 1e-5, dict(zip(PINN_IO[1], worst.tolist(), strict=True))

@@ -11,6 +11,7 @@ from training import train_dynamics
 from training.checkpoint import CheckpointError, load_model_checkpoint, read_checkpoint
 from training.collect import CollectSettings, collect
 from training.dataset import DatasetStats, save_dataset
+from training.pinn import joint_stop_range
 from training.train_dynamics import MODEL_PRESETS, TRAIN_PRESETS, Eq7Loss, TrainConfig, main, train
 
 N = 10
@@ -55,6 +56,12 @@ def test_a_short_training_run_lowers_the_loss_and_writes_a_loadable_checkpoint(w
     assert payload["data"]["config_hash"] and payload["data"]["train_samples"] == 6400
     np.testing.assert_allclose(model.q_mean.numpy() if kind == "pinn" else model.input_mean[:N].numpy(),
                                payload["stats"]["q_mean"], rtol=1e-6)
+    if kind == "pinn":  # the PINN carries the joint-range stop, and the simulator's data never reaches it
+        lower, upper = joint_stop_range(config)
+        np.testing.assert_allclose(model.q_stop_lower.numpy(), lower, rtol=1e-6)
+        np.testing.assert_allclose(model.q_stop_upper.numpy(), upper, rtol=1e-6)
+        q = np.load(path)["q"]
+        assert (q > lower).all() and (q < upper).all()
 
 
 def test_resume_after_an_interruption_gives_the_uninterrupted_result(walk_data, tmp_path, monkeypatch):

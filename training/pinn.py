@@ -4,6 +4,7 @@
     (f_n, dq) = head(LSTM([q, qd, tau]))           f_n: the lumped term of Eq. 4, dq: the Euler correction
     qdd = M^-1 (tau + f_n)                         Eq. 4
     q' = q + qd dt + dq,   qd' = qd + qdd dt       Eq. 6, explicit Euler: q' uses the old qd
+    q' in [lower, upper], qd' = 0 where q' stopped  the simulator's joint-range stops (below)
 
 `PinnStep.forward(q, qd, tau, h, c) -> (q', qd', h', c')` is exactly one control tick with the LSTM state as
 explicit input and output, so the exported ONNX graph (training/export.py) is called once per tick and the
@@ -17,6 +18,15 @@ the head, the tril placement, bI and sqrt(dt) into the ResNet's output layer; th
 mean folded into a bias cancels large terms in float32). Same math, 30 instead of 38
 kernels after onnxruntime's fusions: at 1 kHz the per-kernel cost, not FLOPs, sets the tick's latency (research
 anchors §9).
+
+Joint-range stop. The simulator the PINN imitates stops every joint at its MJCF range, softly (MuJoCo's limit
+constraint lets walking push a straight knee 0.065 rad past 0). The network alone knows nothing of this: in a
+long open-loop rollout q drifts out of the training range, where the ResNet's linear skips extrapolate M^-1 until
+the rollout overflows (43 of 100 1000-step rollouts did). So the step states that physics: the input q is held
+inside [q_stop_lower, q_stop_upper], and a q' beyond it is put back on it with qd' = 0 (an inelastic stop). The
+range is the robot config's joint range widened by JOINT_STOP_MARGIN to cover the soft-limit penetration, so on
+recorded data the stop never acts and teacher-forced training is unchanged by it. Without `set_joint_stop` the
+range is unbounded and the step is the paper's.
 """
 
 from __future__ import annotations
@@ -38,6 +48,17 @@ if TYPE_CHECKING:
 
 
 ACTIVATIONS = {"tanh": nn.Tanh, "elu": nn.ELU}
+
+# rad beyond the MJCF joint range where the PINN's stop sits: MuJoCo's soft limits let the simulator go past the
+# range under load (0.08 rad at most in 90 s of walking data), and the stop must not act on what the simulator does.
+JOINT_STOP_MARGIN = 0.1
+
+
+def joint_stop_range(robot_config) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) of the PINN's joint-range stop: the config's joints.position_limits (which the MJCF's joint
+    ranges equal) widened by JOINT_STOP_MARGIN."""
+    return (np.asarray(robot_config.q_lower) - JOINT_STOP_MARGIN,
+            np.asarray(robot_config.q_upper) + JOINT_STOP_MARGIN)
 
 
 @dataclass(frozen=True)
@@ -134,6 +155,9 @@ class PinnStep(nn.Module):
         # Denormalisation of the head: f_n in torque units, dq in radians. Training fits them (issue #5).
         self.register_buffer("fn_scale", torch.ones(n))
         self.register_buffer("dq_scale", torch.ones(n))
+        # Joint-range stop (module docstring), raw radians; unbounded until set_joint_stop.
+        self.register_buffer("q_stop_lower", torch.full((n,), -math.inf))
+        self.register_buffer("q_stop_upper", torch.full((n,), math.inf))
 
         self.resnet = TrilResNet(n, config.resnet_widths, config.activation)
         self.register_buffer("placement", tril_placement(n))
@@ -162,6 +186,22 @@ class PinnStep(nn.Module):
         set_statistic_buffers(self, {"q_mean": q_mean, "q_std": q_std, "qd_mean": qd_mean, "qd_std": qd_std,
                                      "tau_mean": tau_mean, "tau_std": tau_std, "fn_scale": fn_scale,
                                      "dq_scale": dq_scale}, "PinnStep.set_normalisation")
+
+    def set_joint_stop(self, lower: OptionalArray, upper: OptionalArray) -> None:
+        """Set the joint-range stop to [lower, upper] (each [n_joints], radians, lower < upper, finite)."""
+        bounds = [torch.as_tensor(np.array(v, dtype=np.float64)) for v in (lower, upper)]
+        for name, value in zip(("lower", "upper"), bounds, strict=True):
+            if value.shape != (self.n_joints,):
+                raise ValueError(f"PinnStep.set_joint_stop: {name} must have shape ({self.n_joints},), "
+                                 f"got {tuple(value.shape)}")
+            if not torch.isfinite(value).all():
+                raise ValueError(f"PinnStep.set_joint_stop: {name} has non-finite entries")
+        if not (bounds[0] < bounds[1]).all():
+            raise ValueError(f"PinnStep.set_joint_stop: lower must be < upper for every joint, got "
+                             f"{bounds[0].tolist()} and {bounds[1].tolist()}")
+        with torch.no_grad():
+            self.q_stop_lower.copy_(bounds[0].to(self.q_stop_lower.dtype))
+            self.q_stop_upper.copy_(bounds[1].to(self.q_stop_upper.dtype))
 
     def initial_state(self, batch: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
         """Zero LSTM state (h, c), each [layers, batch, hidden], in the module's dtype and device."""
@@ -201,6 +241,7 @@ class PinnStep(nn.Module):
         window = q.dim() == 3
         if self.is_folded and not torch.jit.is_tracing() and (window or q.shape[0] != 1):  # export traces batch 1
             raise ValueError(f"a folded PinnStep is the exported tick and takes q [1, n], got {list(q.shape)}")
+        q = torch.clamp(q, self.q_stop_lower, self.q_stop_upper)  # the network only sees postures the robot can take
         # Centred here in both forms (folding the mean into a bias would cancel large terms in float32); the
         # division by the std is folded into the weights that read the features.
         features = torch.cat([q, qd, tau], dim=-1) - torch.cat([self.q_mean, self.qd_mean, self.tau_mean])
@@ -226,8 +267,9 @@ class PinnStep(nn.Module):
             factor = factor.unflatten(-1, (n, n))
             a_v = (factor * v.unsqueeze(-2)).sum(-1)  # A v
             qdd_dt = (factor * a_v.unsqueeze(-1)).sum(-2)  # A^T (A v)
-        q_next = q + qd * self.dt + dq  # Eq. 6, old qd
-        qd_next = qd + qdd_dt
+        q_free = q + qd * self.dt + dq  # Eq. 6, old qd
+        q_next = torch.clamp(q_free, self.q_stop_lower, self.q_stop_upper)
+        qd_next = torch.where(q_next == q_free, qd + qdd_dt, 0.0)  # a joint that hit its stop stops there
         return q_next, qd_next, h_next, c_next
 
     @torch.no_grad()

@@ -51,6 +51,7 @@ from training.dataset import (
     split_by_time,
     windows,
 )
+from training.pinn import PinnStep, joint_stop_range
 
 
 @dataclass(frozen=True)
@@ -180,6 +181,8 @@ def train(data_path: str | Path, kind: str, out: str | Path, *, model_config: di
         torch.manual_seed(config.seed)
         model = build_model(kind, model_config)
         model.fit_normalisation(stats)
+        if isinstance(model, PinnStep):  # the stop is the PINN's stated physics; the baselines are as published
+            model.set_joint_stop(*joint_stop_range(robot_config))
         optimizer, scheduler = make_optimizer(model, config)
         rng = np.random.default_rng(config.seed)
         start_epoch, history = 0, []
