@@ -4,6 +4,9 @@ It reports what the robot's own sensors would (joint encoders and torques, the I
 switches) and, separately, simulator ground truth for evaluation. Motors are emulated at the joint level:
 the command's torque (including any motor-side PD) is evaluated every physics step, saturated per actuator
 through the coupling, then by the joint box limits of the model's motors.
+
+With a `RealityGap` (`bruce_hw.reality_gap`) the mock plays "the real robot": perturbed model, delayed and lagged
+torques, noisy and delayed sensors; ground truth stays truth. Without one, the per-tick path is the nominal one.
 """
 
 from __future__ import annotations
@@ -13,11 +16,13 @@ import numpy as np
 
 from bruce_hw.backend import Backend, BackendError, LifecycleState
 from bruce_hw.config import RobotConfig
+from bruce_hw.reality_gap import ActuatorGap, RealityGap, SensorGap, apply_to_model, latency_ticks
 from bruce_hw.types import FootContacts, GroundTruth, ImuSample, JointCommand, JointState, RobotState
 
 IMU_SENSORS = ("imu_gyro", "imu_accel", "imu_quat")
 CONTACT_THRESHOLD_N = 1.0  # a toe/heel switch closes above this normal force
 AMBIENT_TEMPERATURE_C = 30.0  # the mock has no thermal model; it reports a constant winding temperature
+DAMPING = "damping"  # what a faulted backend sends its motors (through the bus latency of a reality gap)
 
 
 def _contiguous(indices: list[int], what: str, model_file: str) -> slice:
@@ -30,9 +35,12 @@ def _contiguous(indices: list[int], what: str, model_file: str) -> slice:
 class MujocoBackend(Backend):
     name = "mock"
 
-    def __init__(self, config: RobotConfig, initial_q: np.ndarray | None = None):
+    def __init__(self, config: RobotConfig, initial_q: np.ndarray | None = None, gap: RealityGap | None = None):
         super().__init__(config)
         self.initial_q = config.standing_pose.copy() if initial_q is None else np.asarray(initial_q, float)
+        self.gap = gap
+        self._actuator_gap: ActuatorGap | None = None
+        self._sensor_gap: SensorGap | None = None
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
         self._command: JointCommand | None = None
@@ -83,6 +91,13 @@ class MujocoBackend(Backend):
         self._soles = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, s) for s in ("r_sole", "l_sole")]
         if min(self._soles) < 0:
             raise BackendError(f"{model_file}: the mock needs sites 'r_sole' and 'l_sole' on the soles")
+        self._torque_limit = cfg.actuator_torque_limit
+        if self.gap is not None:
+            apply_to_model(self.gap, model, self._dofs, self._acts, cfg.joints)
+            self._torque_limit *= self.gap.torque_limit_scale
+            self._actuator_gap = ActuatorGap(latency_ticks(self.gap.actuator_latency_s, cfg.dt),
+                                             self.gap.actuator_time_constant_s, cfg.dt, cfg.n_joints)
+            self._sensor_gap = SensorGap(self.gap, cfg.joints, latency_ticks(self.gap.sensor_latency_s, cfg.dt))
         self.model = model
         self.data = mujoco.MjData(model)
         self._damping_kd = np.full(cfg.n_joints, cfg.safety.damping_kd)
@@ -122,6 +137,9 @@ class MujocoBackend(Backend):
         mujoco.mj_forward(self.model, data)
         self._command = None
         self._push_until = -1.0  # mj_resetData cleared the applied force
+        if self._actuator_gap is not None:
+            self._actuator_gap.reset()
+            self._sensor_gap.reset(self._measure)
 
     def push(self, impulse: np.ndarray, duration: float = 0.1) -> None:
         """Push the base: a constant world-frame force impulse / duration (N) on the base's centre of mass for the
@@ -144,15 +162,39 @@ class MujocoBackend(Backend):
             raise BackendError("mock backend: non-finite joint torque commanded")
         return self.config.coupling.saturate(tau, self.config.actuator_torque_limit)
 
+    def _gap_motor_torque(self) -> np.ndarray:
+        """`_motor_torque` through the reality gap: what arrives after the bus latency, evaluated on the present
+        state, saturated at the gap's per-actuator limit, then lagged by the motor."""
+        data = self.data
+        q, qd = data.qpos[self._qpos], data.qvel[self._dofs]
+        arrived = self._actuator_gap.delayed(DAMPING if self._state is LifecycleState.FAULT else self._command)
+        if arrived is None:
+            tau = self._zero
+        elif arrived is DAMPING:
+            tau = -self._damping_kd * qd
+        else:
+            tau = arrived.torque(q, qd)
+            if not np.all(np.isfinite(tau)):
+                raise BackendError("mock backend: non-finite joint torque commanded")
+            tau = self.config.coupling.saturate(tau, self._torque_limit)
+        return self._actuator_gap.lag(tau)
+
     def _read(self) -> RobotState:
         data = self.data
-        data.ctrl[self._acts] = self._motor_torque()  # the model's motors clamp to the joint box limits
+        # The model's motors clamp to the joint box limits.
+        data.ctrl[self._acts] = self._motor_torque() if self._actuator_gap is None else self._gap_motor_torque()
         if self._push_until >= 0.0:
             pushing = data.time < self._push_until - 1e-9
             data.xfrc_applied[self._base, :3] = self._push_force if pushing else 0.0
             if not pushing:
                 self._push_until = -1.0
         mujoco.mj_step(self.model, data)
+        state = self._measure()
+        return state if self._sensor_gap is None else self._sensor_gap.report(state)
+
+    def _measure(self) -> RobotState:
+        """What the sensors read now (fresh arrays)."""
+        data = self.data
         t = data.time
         s = data.sensordata
         return RobotState(
@@ -179,4 +221,5 @@ class MujocoBackend(Backend):
         data = self.data
         return GroundTruth(sim_time=float(data.time), base_pos=data.qpos[0:3].copy(),
                            base_quat=data.qpos[3:7].copy(), base_linvel=data.qvel[0:3].copy(),
-                           base_angvel=data.qvel[3:6].copy())
+                           base_angvel=data.qvel[3:6].copy(), joint_q=data.qpos[self._qpos].copy(),
+                           joint_qd=data.qvel[self._dofs].copy())

@@ -82,3 +82,6 @@ class GroundTruth:
     base_quat: np.ndarray     # (w, x, y, z), base -> world
     base_linvel: np.ndarray   # m/s, world
     base_angvel: np.ndarray   # rad/s, base frame
+    # Joint angles and velocities as simulated (config order), free of any reality gap's encoder noise or latency.
+    joint_q: np.ndarray | None = None
+    joint_qd: np.ndarray | None = None

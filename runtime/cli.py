@@ -3,7 +3,7 @@
 The controller (--controller: the ONNX policy, the model-based walking teacher or the standing controller)
 follows a velocity command: --cmd VX,VY,WZ holds one, --scenario PATH plays a scenario file of timed segments
 (see configs/scenarios/); with neither it is asked to stand still. --estimator picks where the base state the
-controller sees comes from.
+controller sees comes from. --gap makes the mock play "the real robot" (a reality-gap profile, configs/gaps/).
 """
 
 from __future__ import annotations
@@ -13,10 +13,12 @@ import logging
 import math
 import os
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from bruce_hw.backend import BACKENDS, BackendError, make_backend
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
+from bruce_hw.reality_gap import GapError, load_gap
 from runtime.commands import COMMAND_AXES, COMMAND_LIMITS, COMMAND_UNITS, CommandSchedule
 from runtime.estimation import ESTIMATORS
 from runtime.inference import ModelError
@@ -28,6 +30,13 @@ def positive_seconds(text: str) -> float:
     value = float(text)
     if not value > 0:
         raise argparse.ArgumentTypeError(f"expected a duration > 0 s, got {text}")
+    return value
+
+
+def seed(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text}")
     return value
 
 
@@ -85,6 +94,11 @@ def build_parser() -> argparse.ArgumentParser:
     commands.add_argument("--scenario", type=Path, default=None, metavar="PATH",
                           help="play a scenario YAML of timed velocity commands, e.g. "
                                "configs/scenarios/walk_then_turn.yaml (the command is 0 after its end)")
+    p.add_argument("--gap", default=None, metavar="PROFILE",
+                   help="mock only: a reality-gap profile, so the mock plays the real robot: a name in configs/gaps/ "
+                        "(none, mild, default, harsh) or a YAML path (default: none)")
+    p.add_argument("--gap-seed", type=seed, default=None, metavar="N",
+                   help="seed of the profile's sensor noise (default: the profile's `seed`)")
     p.add_argument("--pinn", type=Path, default=None, metavar="PATH",
                    help="ONNX PINN for --transfer pinn; default: pinn.model in the config")
     p.add_argument("--rerun", default=None, metavar="SINK",
@@ -101,6 +115,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.policy is not None and args.controller != "policy":
         parser.error(f"--policy is for --controller policy, not {args.controller}")
+    if args.backend != "mock":
+        for flag, value in (("--gap", args.gap), ("--gap-seed", args.gap_seed)):
+            if value is not None:
+                parser.error(f"{flag} is for --backend mock (a simulated robot), not {args.backend}")
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
     try:
         sink = parse_sink(args.rerun or default_rerun_sink())
@@ -109,8 +127,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = load_config(args.config, args.overrides)
         commands = CommandSchedule.from_yaml(args.scenario) if args.scenario is not None else args.cmd
-        backend = make_backend(args.backend, config)
-    except (ConfigError, BackendError) as exc:
+        options = {}
+        if args.gap is not None or args.gap_seed is not None:
+            gap = load_gap(args.gap or "none", config.joints)
+            options["gap"] = gap if args.gap_seed is None else replace(gap, seed=args.gap_seed)
+            print(f"bruce-run: reality gap {gap.source} (seed {options['gap'].seed})", flush=True)
+        backend = make_backend(args.backend, config, **options)
+    except (ConfigError, GapError, BackendError) as exc:
         print(f"bruce-run: {exc}", file=sys.stderr)
         return 2
     realtime = args.realtime or args.backend == "hw"  # a robot is always paced

@@ -1,0 +1,320 @@
+"""Reality-gap profiles: what makes a perturbed mock play "the real robot" while the nominal mock is "the simulator".
+
+A `RealityGap` lists the differences (every field defaults to "no gap"); `load_gap` reads one from
+`configs/gaps/<name>.yaml` or a path. The mock backend (`bruce_hw.mock.MujocoBackend(gap=...)`) applies it:
+
+- in the model, once (`apply_to_model`): joint Coulomb and viscous friction as MuJoCo's own `dof_frictionloss` and
+  `dof_damping` (solved implicitly, so stiff values stay stable), added to the MJCF's; body mass and inertia scales;
+  joint armature (scale, then an added reflected inertia); the motors' joint box limits scaled with the torque limit;
+- on the command path, every physics tick (`ActuatorGap`): the command applied is the one sent `latency` ticks ago
+  (the bus), saturated at the scaled per-actuator limit, then followed by a first-order torque lag (the motor);
+- on the sensor path (`SensorGap`): encoder and IMU noise and bias, then the state reported is the one measured
+  `latency` ticks ago, with the stamps of when it was measured.
+
+Per-joint values are a number (every joint) or a mapping joint name -> number (joints left out take the no-gap
+value). Simulator ground truth is never perturbed: it is what a run is evaluated against.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, fields
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+import yaml
+
+from bruce_hw.types import RobotState
+
+GAPS_PACKAGE = "configs.gaps"
+
+# How a value is checked: what the error says it expected, and the test.
+_CHECKS: dict[str, tuple[str, Callable[[float], bool]]] = {
+    "nonneg": ("a number >= 0", lambda v: v >= 0.0),
+    "positive": ("a number > 0", lambda v: v > 0.0),
+    "fraction": ("a number in (0, 1]", lambda v: 0.0 < v <= 1.0),
+    "any": ("a finite number", lambda v: True),
+}
+
+
+class GapError(ValueError):
+    """A reality-gap profile that cannot be used; the message names the file and the key."""
+
+
+def _gap_field(key: str, check: str, shape: str = "scalar", default: float = 0.0) -> Any:
+    """A gap parameter: its YAML key (section.name), its check and its shape (scalar, per_joint or vec3)."""
+    return field(default=default, metadata={"key": key, "check": check, "shape": shape})
+
+
+@dataclass(frozen=True)
+class RealityGap:
+    source: str = field(default="RealityGap", compare=False)  # where it came from (the YAML file), for errors
+    seed: int = 0               # the noise generator's seed (numpy default_rng)
+    actuator_latency_s: float = _gap_field("actuator.latency_s", "nonneg")
+    actuator_time_constant_s: float = _gap_field("actuator.time_constant_s", "nonneg")
+    torque_limit_scale: float = _gap_field("actuator.torque_limit_scale", "fraction", default=1.0)
+    coulomb: Any = _gap_field("friction.coulomb", "nonneg", "per_joint")          # N m
+    viscous: Any = _gap_field("friction.viscous", "nonneg", "per_joint")          # N m s/rad
+    mass_scale: float = _gap_field("inertia.mass_scale", "positive", default=1.0)
+    inertia_scale: float = _gap_field("inertia.inertia_scale", "positive", default=1.0)
+    armature_scale: Any = _gap_field("inertia.armature_scale", "positive", "per_joint", default=1.0)
+    armature_add: Any = _gap_field("inertia.armature_add", "nonneg", "per_joint")  # kg m^2
+    q_noise: Any = _gap_field("encoder.q_noise", "nonneg", "per_joint")           # rad, std
+    q_bias: Any = _gap_field("encoder.q_bias", "any", "per_joint")                # rad
+    qd_noise: Any = _gap_field("encoder.qd_noise", "nonneg", "per_joint")         # rad/s, std
+    qd_bias: Any = _gap_field("encoder.qd_bias", "any", "per_joint")              # rad/s
+    gyro_noise: float = _gap_field("imu.gyro_noise", "nonneg")                    # rad/s, std per axis
+    gyro_bias: Any = _gap_field("imu.gyro_bias", "any", "vec3")                   # rad/s
+    accel_noise: float = _gap_field("imu.accel_noise", "nonneg")                  # m/s^2, std per axis
+    accel_bias: Any = _gap_field("imu.accel_bias", "any", "vec3")                 # m/s^2
+    orientation_noise: float = _gap_field("imu.orientation_noise", "nonneg")      # rad, std per axis
+    sensor_latency_s: float = _gap_field("sensor.latency_s", "nonneg")
+
+    def __post_init__(self) -> None:
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise GapError(f"{self.source}: seed: expected an integer >= 0, got {self.seed!r}")
+        for f in fields(self):
+            if "key" in f.metadata:
+                object.__setattr__(self, f.name, _checked(self.source, f.metadata, getattr(self, f.name)))
+
+    def per_joint(self, name: str, joints: Sequence[str]) -> np.ndarray:
+        """Field `name` as an array in `joints` order."""
+        value = getattr(self, name)
+        if not isinstance(value, dict):
+            return np.full(len(joints), value)
+        f = _FIELDS[name]
+        unknown = [j for j in value if j not in joints]
+        if unknown:
+            raise GapError(f"{self.source}: {f.metadata['key']}.{unknown[0]}: unknown joint (expected one of "
+                           f"{list(joints)})")
+        return np.array([value.get(j, f.default) for j in joints])
+
+    def vec3(self, name: str) -> np.ndarray:
+        return np.array(getattr(self, name), dtype=float) * np.ones(3)
+
+    def check_joints(self, joints: Sequence[str]) -> None:
+        """Every per-joint mapping names joints of `joints` (raises GapError naming the file and key)."""
+        for name, f in _FIELDS.items():
+            if f.metadata["shape"] == "per_joint":
+                self.per_joint(name, joints)
+
+
+_FIELDS = {f.name: f for f in fields(RealityGap) if "key" in f.metadata}
+_ATTR_OF_KEY = {f.metadata["key"]: name for name, f in _FIELDS.items()}
+SECTIONS = tuple(dict.fromkeys(key.split(".")[0] for key in _ATTR_OF_KEY))
+
+
+def _number(source: str, key: str, value: Any, check: str, also: str = "") -> float:
+    expected, ok = _CHECKS[check]
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or not ok(value):
+        hint = ""
+        if isinstance(value, str):
+            try:
+                float(value)
+                hint = " (YAML reads 1e-3 as text: write 1.0e-3)"
+            except ValueError:
+                pass
+        raise GapError(f"{source}: {key}: expected {expected}{also}, got {value!r}{hint}")
+    return float(value)
+
+
+def _checked(source: str, meta: Any, value: Any) -> Any:
+    key, check, shape = meta["key"], meta["check"], meta["shape"]
+    if shape == "per_joint" and isinstance(value, dict):
+        return {str(j): _number(source, f"{key}.{j}", v, check) for j, v in value.items()}
+    if shape == "vec3" and isinstance(value, list | tuple | np.ndarray):
+        if len(value) != 3:
+            raise GapError(f"{source}: {key}: expected 3 numbers (x, y, z), got {len(value)}")
+        return tuple(_number(source, f"{key}[{i}]", v, check) for i, v in enumerate(value))
+    also = {"per_joint": " or a mapping joint name -> number", "vec3": " or a list of 3 numbers"}.get(shape, "")
+    return _number(source, key, value, check, also)
+
+
+# -- loading -------------------------------------------------------------------------------------------------
+def profile_names() -> list[str]:
+    """The shipped profiles (configs/gaps/*.yaml)."""
+    return sorted(p.name[:-5] for p in resources.files(GAPS_PACKAGE).iterdir() if p.name.endswith(".yaml"))
+
+
+def gap_path(name_or_path: str | Path) -> Path:
+    """A bare name is a shipped profile (configs/gaps/<name>.yaml); anything with a directory or a .yaml/.yml
+    suffix is a path."""
+    path = Path(name_or_path)
+    if path.suffix in (".yaml", ".yml") or len(path.parts) > 1:
+        if not path.is_file():
+            raise GapError(f"{path}: reality-gap profile file not found")
+        return path
+    packaged = resources.files(GAPS_PACKAGE) / f"{path.name}.yaml"
+    if packaged.is_file():
+        return Path(str(packaged))
+    raise GapError(f"unknown reality-gap profile {str(name_or_path)!r}: expected a YAML path or one of "
+                   f"{profile_names()} (configs/gaps/)")
+
+
+def parse_gap(data: Any, source: str, joints: Sequence[str] | None = None) -> RealityGap:
+    """A parsed YAML tree -> RealityGap; unknown sections or keys, wrong types and out-of-range values raise
+    GapError naming `source` and the key. With `joints`, per-joint mappings are checked against them."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise GapError(f"{source}: <top>: expected a mapping of seed and sections {list(SECTIONS)}, got {data!r}")
+    values: dict[str, Any] = {}
+    for section, node in data.items():
+        if section == "seed":
+            values["seed"] = node
+            continue
+        if section not in SECTIONS:
+            raise GapError(f"{source}: {section}: unknown key (expected seed or one of {list(SECTIONS)})")
+        if node is None:
+            continue
+        if not isinstance(node, dict):
+            raise GapError(f"{source}: {section}: expected a mapping, got {node!r}")
+        for name, value in node.items():
+            attr = _ATTR_OF_KEY.get(f"{section}.{name}")
+            if attr is None:
+                allowed = [k.split(".")[1] for k in _ATTR_OF_KEY if k.startswith(f"{section}.")]
+                raise GapError(f"{source}: {section}.{name}: unknown key (expected one of {allowed})")
+            values[attr] = value
+    gap = RealityGap(source=source, **values)
+    if joints is not None:
+        gap.check_joints(joints)
+    return gap
+
+
+def load_gap(name_or_path: str | Path, joints: Sequence[str] | None = None) -> RealityGap:
+    """The profile `name_or_path`: a shipped name (configs/gaps/<name>.yaml) or a YAML file."""
+    path = gap_path(name_or_path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise GapError(f"{path}: not valid YAML: {exc}") from exc
+    return parse_gap(data, str(path), joints)
+
+
+def latency_ticks(seconds: float, dt: float) -> int:
+    """A latency in whole physics ticks (rounded to the nearest)."""
+    return round(seconds / dt)
+
+
+# -- what the mock does with a gap ---------------------------------------------------------------------------
+def apply_to_model(gap: RealityGap, model: mujoco.MjModel, dofs: slice, acts: slice,
+                   joints: Sequence[str]) -> None:
+    """Put the gap's friction, inertia and torque limits into the model, on top of the MJCF's values. Each change is
+    made only when it changes something, so the "none" profile leaves the model bit-identical."""
+    coulomb, viscous = gap.per_joint("coulomb", joints), gap.per_joint("viscous", joints)
+    armature_scale, armature_add = gap.per_joint("armature_scale", joints), gap.per_joint("armature_add", joints)
+    if np.any(coulomb):
+        model.dof_frictionloss[dofs] += coulomb
+    if np.any(viscous):
+        model.dof_damping[dofs] += viscous
+    inertial = False
+    if np.any(armature_scale != 1.0) or np.any(armature_add):
+        model.dof_armature[dofs] = model.dof_armature[dofs] * armature_scale + armature_add
+        inertial = True
+    if gap.mass_scale != 1.0:
+        model.body_mass[:] *= gap.mass_scale
+        inertial = True
+    if gap.inertia_scale != 1.0:
+        model.body_inertia[:] *= gap.inertia_scale
+        inertial = True
+    if gap.torque_limit_scale != 1.0:
+        model.actuator_ctrlrange[acts] *= gap.torque_limit_scale
+    if inertial:
+        # Derived constants (subtree masses, the constraint solver's inverse weights) as if compiled that way.
+        mujoco.mj_setConst(model, mujoco.MjData(model))
+
+
+class ActuatorGap:
+    """The command path: a ring of what was sent (bus latency) and the motor's first-order torque lag."""
+
+    def __init__(self, latency: int, time_constant_s: float, dt: float, n_joints: int):
+        self._ring: list[Any] = [None] * latency
+        self._at = 0
+        # Exact discretisation of tau_applied' = (tau_cmd - tau_applied) / T under a zero-order-hold command.
+        self.alpha = 1.0 - math.exp(-dt / time_constant_s) if time_constant_s > 0.0 else 1.0
+        self._applied = np.zeros(n_joints)
+        self._change = np.zeros(n_joints)
+
+    def reset(self) -> None:
+        """Nothing sent yet, motors at zero torque."""
+        for i in range(len(self._ring)):
+            self._ring[i] = None
+        self._at = 0
+        self._applied[:] = 0.0
+
+    def delayed(self, sent: Any) -> Any:
+        """What reaches the motors this tick, given what was sent (None before the first command)."""
+        ring = self._ring
+        if not ring:
+            return sent
+        arrived, ring[self._at] = ring[self._at], sent
+        self._at = (self._at + 1) % len(ring)
+        return arrived
+
+    def lag(self, tau: np.ndarray) -> np.ndarray:
+        """The torque the motors apply during this tick (an internal buffer: copy what you keep)."""
+        if self.alpha >= 1.0:
+            return tau
+        np.subtract(tau, self._applied, out=self._change)
+        self._change *= self.alpha
+        self._applied += self._change
+        return self._applied
+
+
+class SensorGap:
+    """The sensor path: encoder and IMU noise and bias on each measurement, then the reported state is the one
+    measured `latency` ticks ago."""
+
+    def __init__(self, gap: RealityGap, joints: Sequence[str], latency: int):
+        self.rng = np.random.default_rng(gap.seed)
+        self.latency = latency
+        self.q_bias, self.qd_bias = gap.per_joint("q_bias", joints), gap.per_joint("qd_bias", joints)
+        self.q_noise, self.qd_noise = gap.per_joint("q_noise", joints), gap.per_joint("qd_noise", joints)
+        self.gyro_bias, self.accel_bias = gap.vec3("gyro_bias"), gap.vec3("accel_bias")
+        self.gyro_noise, self.accel_noise = gap.gyro_noise, gap.accel_noise
+        self.orientation_noise = gap.orientation_noise
+        self._encoder_noise = bool(np.any(self.q_noise) or np.any(self.qd_noise))
+        self._bias = bool(np.any(self.q_bias) or np.any(self.qd_bias) or np.any(self.gyro_bias)
+                          or np.any(self.accel_bias))
+        self._ring: list[RobotState] = []
+        self._at = 0
+
+    def reset(self, measure: Callable[[], RobotState]) -> None:
+        """Fill the delay line with measurements of the state just placed (what a robot reports before any
+        newer sample has come through)."""
+        self._ring = [self._corrupt(measure()) for _ in range(self.latency)]
+        self._at = 0
+
+    def report(self, measured: RobotState) -> RobotState:
+        measured = self._corrupt(measured)
+        ring = self._ring
+        if not ring:
+            return measured
+        reported, ring[self._at] = ring[self._at], measured
+        self._at = (self._at + 1) % len(ring)
+        return reported
+
+    def _corrupt(self, state: RobotState) -> RobotState:
+        """Noise and bias, in place on the measurement's own arrays."""
+        joints, imu = state.joints, state.imu
+        normal = self.rng.standard_normal
+        if self._bias:
+            joints.q += self.q_bias
+            joints.qd += self.qd_bias
+            imu.gyro += self.gyro_bias
+            imu.accel += self.accel_bias
+        if self._encoder_noise:
+            joints.q += self.q_noise * normal(joints.q.shape[0])
+            joints.qd += self.qd_noise * normal(joints.qd.shape[0])
+        if self.gyro_noise:
+            imu.gyro += self.gyro_noise * normal(3)
+        if self.accel_noise:
+            imu.accel += self.accel_noise * normal(3)
+        if self.orientation_noise and imu.orientation is not None:
+            # A small rotation (rotation vector ~ N(0, std^2) per axis) in the IMU frame; the result stays unit.
+            mujoco.mju_quatIntegrate(imu.orientation, self.orientation_noise * normal(3), 1.0)
+        return state
