@@ -77,6 +77,7 @@ import torch
 from torch import nn
 
 from bruce_hw.config import ConfigError, RobotConfig
+from training import transfer_eval
 from training.checkpoint import MODEL_KINDS, CheckpointError, load_model_checkpoint
 from training.dataset import DatasetError, file_sha256, load_dataset, split_by_time
 from training.eval_report import BOUND_FACTOR, bar_k, json_safe, markdown_table, plot_fig4, plot_fig5
@@ -556,7 +557,8 @@ def parse_ks(text: str) -> tuple[int, ...]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="bruce-eval", description="Evaluate learned models (issue #5).")
+    parser = argparse.ArgumentParser(prog="bruce-eval", description="Evaluate learned dynamics models "
+                                     "(dynamics) and rehearse their sim-to-real transfer (transfer).")
     commands = parser.add_subparsers(dest="command", required=True)
     p = commands.add_parser("dynamics", help="held-out NMSE and per-step compute of dynamics models",
                             description=__doc__.split("\n\n")[0])
@@ -579,6 +581,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="timed calls per contender, 0 to skip timing (default: %(default)s)")
     p.add_argument("--train-fraction", type=float, default=0.8, help="the split (default: %(default)s)")
     p.add_argument("--config", default=None, help="robot config the data must match (default: BRUCE's)")
+    transfer_eval.add_parser(commands)
     return parser
 
 
@@ -685,6 +688,8 @@ def run_dynamics(args: argparse.Namespace, argv: Sequence[str]) -> int:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    if args.command == "transfer":
+        return transfer_eval.run_transfer(args, argv)
     # One intra-op thread: the rollouts are long chains of small batched calls, where a second thread only adds
     # synchronisation (measured ~10-50x slower on the shared 2-core VM); the timing is per-thread anyway.
     threads = torch.get_num_threads()

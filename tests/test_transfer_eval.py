@@ -1,0 +1,132 @@
+"""`bruce-eval transfer`: the metrics on paths and traces with known answers, and one short end-to-end run."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from training.evaluate import main as eval_main
+from training.transfer_eval import (
+    EXPERIMENTS,
+    RunRecord,
+    RunSpec,
+    aggregate,
+    circle_deviation,
+    distance_to_path,
+    drift,
+    ideal_path,
+    joint_rmse,
+)
+
+DT = 1e-3
+
+
+def record(t, q=None, xy=None, yaw=None, fell=False) -> RunRecord:
+    n = len(t)
+    q = np.zeros((n, 2)) if q is None else q
+    return RunRecord(spec=RunSpec("x", (0.0, 0.0, 0.0), t[-1], "direct", None), t=t, q=q, qd=np.zeros_like(q),
+                     tau=np.zeros_like(q), xy=np.zeros((n, 2)) if xy is None else xy,
+                     yaw=np.zeros(n) if yaw is None else yaw, velocity=np.zeros((n, 3)), fell=fell, stop_cause="")
+
+
+def test_joint_rmse_is_per_joint_after_the_skip_over_the_common_length():
+    t = np.arange(5000) * DT
+    rng = np.random.default_rng(0)
+    reference = record(t, q=rng.normal(size=(5000, 2)))
+    offset = np.array([0.1, -0.3])
+    shorter = record(t[:4000], q=reference.q[:4000] + offset)
+    shorter.q[:2000] += 5.0  # inside the start-up skip: not scored
+    np.testing.assert_allclose(joint_rmse(shorter, reference, skip_s=2.0), np.abs(offset), rtol=1e-12)
+    # hand-computed on a ramp
+    ramp = record(t, q=reference.q + np.linspace(0, 1, 5000)[:, None])
+    expected = np.sqrt(np.mean(np.linspace(0, 1, 5000)[2000:] ** 2))
+    np.testing.assert_allclose(joint_rmse(ramp, reference, skip_s=2.0), [expected, expected], rtol=1e-12)
+
+
+def test_ideal_path_integrates_the_ramped_command():
+    t = np.arange(0, 10.0 + DT / 2, DT)
+    straight = ideal_path((-0.5, 0.0, 0.0), t, np.array([1.0, 2.0]), 0.0, ramp_s=1.0)
+    # ramp 0 -> -0.5 over 1 s covers -0.25 m, then 9 s at -0.5
+    np.testing.assert_allclose(straight[-1], [1.0 - 0.25 - 4.5, 2.0], atol=1e-6)
+    turning = ideal_path((0.4, 0.0, 0.4), t, np.zeros(2), math.pi / 2, ramp_s=0.0)
+    radius = 1.0
+    centre = np.array([-radius, 0.0])  # left of a robot facing +y
+    np.testing.assert_allclose(np.linalg.norm(turning - centre, axis=1), radius, atol=1e-4)
+
+
+def test_circle_deviation_is_zero_on_the_ideal_circle_and_the_offset_on_a_wider_one():
+    t = np.arange(0, 15.0, DT)
+    vx, wz = 0.4, 0.4
+    path = ideal_path((vx, 0.0, wz), t, np.zeros(2), 0.0, ramp_s=0.0)
+    on = circle_deviation(record(t, xy=path), (vx, 0.0, wz))
+    assert on["mean_radial_deviation"] < 1e-4 and on["radius"] == pytest.approx(1.0)
+    centre = np.array([0.0, 1.0])
+    wider = centre + (path - centre) * 1.2  # radius 1.2, same centre: deviation 0.2 (the start is moved too)
+    wider[0] = 0.0  # the circle is placed through the start pose, which is the real start
+    off = circle_deviation(record(t, xy=wider), (vx, 0.0, wz), skip_s=2.0)
+    assert off["mean_radial_deviation"] == pytest.approx(0.2, abs=1e-6)
+    right = circle_deviation(record(t, xy=path * [1, -1]), (vx, 0.0, -wz))  # a right turn mirrors it
+    assert right["mean_radial_deviation"] < 1e-4
+
+
+def test_drift_is_the_distance_from_the_commanded_path():
+    t = np.arange(0, 20.0, DT)
+    back = ideal_path((-0.5, 0.0, 0.0), t, np.zeros(2), 0.0)
+    sideways = back + [0.0, 0.3]
+    short = back * 0.9
+    d = drift(record(t, xy=np.vstack([np.zeros((1, 2)), sideways[1:]])), (-0.5, 0.0, 0.0))
+    assert d["drift"] == pytest.approx(0.3, abs=1e-9)
+    assert d["endpoint_error"] == pytest.approx(0.3, abs=1e-9)
+    s = drift(record(t, xy=short), (-0.5, 0.0, 0.0))
+    assert s["drift"] < 1e-9 and s["endpoint_error"] == pytest.approx(0.1 * abs(back[-1, 0]), rel=1e-9)
+    turn = drift(record(t, xy=np.vstack([np.zeros((len(t) - 1, 2)), [[0.3, 0.4]]])), (0.0, 0.0, 0.5))
+    assert turn["drift"] == pytest.approx(0.5) and turn["distance_from_origin"] == pytest.approx(0.5)
+    assert distance_to_path(np.array([2.0, 1.0]), np.array([[0.0, 0.0], [1.0, 0.0]])) == pytest.approx(math.sqrt(2))
+
+
+def test_aggregate_means_over_seeds_and_counts_falls():
+    seeds = [{"fell": False, "joint_rmse": 0.1, "per": [1.0, 2.0]}, {"fell": True, "joint_rmse": 0.3,
+                                                                     "per": [3.0, 4.0]}]
+    out = aggregate(seeds)
+    assert out["fell"] is True and out["falls"] == 1 and out["seeds"] == 2
+    assert out["joint_rmse"] == pytest.approx(0.2) and out["joint_rmse_std"] == pytest.approx(math.sqrt(0.02))
+    assert out["per"] == [2.0, 3.0]
+
+
+def test_bruce_eval_transfer_writes_the_table_and_figures(tmp_path, capsys):
+    out = tmp_path / "transfer"
+    code = eval_main(["transfer", "--gap", "mild", "--out", str(out), "--seconds", "2.6", "--seeds", "0,1",
+                      "--sweep-seeds", "0", "--latencies-ms", "0,3", "--gain-scales", "0,1", "--jobs", "1"])
+    assert code == 0
+    report = json.loads((out / "transfer.json").read_text())
+    for name in ("tracking", "circle", "reverse", "turn"):
+        for mode in ("direct", "pinn"):
+            entry = report[name][mode]
+            assert entry["seeds"] == 2 and isinstance(entry["fell"], bool) and math.isfinite(entry["drift"])
+    assert report["tracking"]["nominal"]["joint_rmse"] == 0.0
+    for mode in ("direct", "pinn"):
+        assert report["tracking"][mode]["joint_rmse"] > 0.0  # the gap moves the joints off the simulator's
+        assert math.isfinite(report["circle"][mode]["mean_radial_deviation"])
+        assert {"fell", "drift"} <= set(report["reverse"][mode]) and {"fell", "drift"} <= set(report["turn"][mode])
+    # with the Eq. 9 gains at 0, PINN transfer is direct transfer: the same torques, the same run
+    gain = {row["scale"]: row["pinn"]["joint_rmse"] for row in report["sweeps"]["eq9_gain"]}
+    latency = {row["latency_ms"]: row for row in report["sweeps"]["latency"]}
+    assert gain[0.0] == pytest.approx(report["tracking"]["direct"]["per_seed"][0]["joint_rmse"], rel=1e-12)
+    assert latency[3.0]["direct"]["joint_rmse"] != latency[0.0]["direct"]["joint_rmse"]
+    assert report["meta"]["gap_name"] == "mild" and report["meta"]["seeds"] == [0, 1]
+    for name in ("transfer.md", *(e.figure for e in EXPERIMENTS), "fig10_sweeps.png"):
+        assert (out / name).stat().st_size > 0, name
+    assert "| tracking | joint RMSE (rad) |" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--gap", "no_such_profile"], "no_such_profile"),
+    (["--experiments", "tracking,moonwalk"], "--experiments"),
+    (["--seconds", "1"], "--seconds"),
+    (["--latencies-ms", "1,x"], "--latencies-ms"),
+])
+def test_bad_options_are_named(tmp_path, capsys, args, message):
+    assert eval_main(["transfer", "--out", str(tmp_path / "x"), *args]) == 1
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
