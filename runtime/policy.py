@@ -12,8 +12,13 @@ its graph):
 | qd               | n    | joint velocities (rad/s)                               |
 | base_linvel      | 3    | base linear velocity, base frame (m/s)                 |
 | base_angvel      | 3    | base angular velocity, base frame (rad/s)              |
-| euler            | 3    | base roll, pitch, yaw (rad)                            |
+| euler            | 3    | base roll, pitch (rad); yaw minus the commanded heading (rad) |
 | last_action      | n    | a_{t-1} (rad)                                          |
+
+The third Euler entry is not the absolute yaw, which a policy cannot generalise over (walking does not depend on
+where north is), but the yaw's error to the heading the command asks for (`runtime.heading`), the state the
+walking teacher steers with: a student that sees it can learn the teacher's heading correction. The builder
+keeps that reference, so it is built once per policy tick, in order, and reset at the start of a run.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ import numpy as np
 from bruce_hw.config import RobotConfig
 from bruce_hw.types import RobotState
 from runtime.estimation import BaseEstimate
+from runtime.heading import HeadingReference
 from runtime.inference import OnnxPolicy
 
 
@@ -42,6 +48,10 @@ class ObservationBuilder:
             self.slices[name] = slice(start, start + width)
             start += width
         self.size = start
+        self.heading_reference = HeadingReference(1.0 / config.policy_hz)
+
+    def reset(self) -> None:
+        self.heading_reference.reset()
 
     def build(self, t: float, command: np.ndarray, state: RobotState, base: BaseEstimate,
               last_action: np.ndarray) -> np.ndarray:
@@ -54,7 +64,9 @@ class ObservationBuilder:
         obs[s["qd"]] = state.joints.qd
         obs[s["base_linvel"]] = base.linvel
         obs[s["base_angvel"]] = base.angvel
-        obs[s["euler"]] = base.euler
+        roll, pitch, yaw = base.euler
+        self.heading_reference.update(float(yaw), float(command[2]))
+        obs[s["euler"]] = (roll, pitch, self.heading_reference.error(float(yaw)))
         obs[s["last_action"]] = last_action
         return obs
 
@@ -71,6 +83,7 @@ class PolicyController:
 
     def reset(self, q_measured: np.ndarray) -> None:
         self.step = 0
+        self.builder.reset()
         self.last_action = np.array(q_measured, dtype=float)
 
     def __call__(self, state: RobotState, base: BaseEstimate, command: np.ndarray) -> np.ndarray:

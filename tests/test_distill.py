@@ -35,7 +35,7 @@ def test_teacher_rollout_is_labelled_at_the_policy_rate(config):
     np.testing.assert_allclose(episode.obs[1:, builder.slices["last_action"]], episode.teacher_actions[:-1])
 
 
-def test_a_small_distillation_exports_a_heading_invariant_policy(config, tmp_path):
+def test_a_small_distillation_exports_the_student(config, tmp_path):
     from training.export import export_mlp_policy_onnx
 
     settings = DistillSettings(rounds=1, episodes_per_round=2, episode_s=1.0, epochs=2, hidden=(32, 32))
@@ -48,9 +48,8 @@ def test_a_small_distillation_exports_a_heading_invariant_policy(config, tmp_pat
     with torch.no_grad():
         expected = student(torch.as_tensor(obs, dtype=torch.float32)[None])[0].numpy()
     np.testing.assert_allclose(policy(obs), expected, atol=1e-4)
-    turned = obs.copy()
-    turned[builder.slices["euler"].start + 2] += 2.0  # another heading, all else equal
-    np.testing.assert_allclose(policy(turned), policy(obs), atol=1e-6)
+    # the yaw input is the heading error, which the student reads (it once had the absolute yaw, masked)
+    assert student.obs_scale[builder.slices["euler"].start + 2] > 0
 
 
 def test_the_committed_policy_is_the_default_and_says_how_to_rebuild_it(config):

@@ -27,8 +27,36 @@ def test_observation_follows_table_one(config):
     np.testing.assert_array_equal(obs[s["qd"]], state.joints.qd)
     np.testing.assert_array_equal(obs[s["base_linvel"]], base.linvel)
     np.testing.assert_array_equal(obs[s["base_angvel"]], base.angvel)
-    np.testing.assert_array_equal(obs[s["euler"]], base.euler)
+    # roll and pitch as estimated; then the yaw's error to the commanded heading: the reference starts at the
+    # measured yaw and has turned by -0.5 rad/s for one policy tick
+    np.testing.assert_allclose(obs[s["euler"]], [0.01, 0.02, 0.5 / config.policy_hz], rtol=1e-12)
     np.testing.assert_array_equal(obs[s["last_action"]], np.arange(10.0))
+
+
+def test_heading_error_integrates_the_command_is_bounded_and_ignores_where_north_is(config):
+    def errors(yaw_offset: float, yaw_rates: list[float], yaw_of_tick) -> list[float]:
+        builder = ObservationBuilder(config)
+        state = MujocoBackend(config)
+        state.configure()
+        robot = state.read()
+        out = []
+        for k, wz in enumerate(yaw_rates):
+            base = BaseEstimate(quat=np.array([1.0, 0.0, 0.0, 0.0]), linvel=np.zeros(3), angvel=np.zeros(3),
+                                euler=np.array([0.0, 0.0, yaw_offset + yaw_of_tick(k)]))
+            out.append(builder.build(k / config.policy_hz, np.array([0.0, 0.0, wz]), robot, base, np.zeros(10))
+                       [builder.slices["euler"].start + 2])
+        return out
+
+    dt = 1.0 / config.policy_hz
+    standing = errors(0.0, [0.4] * 200, lambda k: 0.0)  # commanded to turn, the base does not
+    np.testing.assert_allclose(standing[:10], -0.4 * dt * np.arange(1, 11), rtol=1e-9)
+    assert min(standing) == pytest.approx(-0.3)  # the reference leads the measured yaw by 0.3 rad at most
+    # turning as commanded: a constant error of one tick's turn (the reference is where the yaw should be by the
+    # next tick)
+    following = errors(0.0, [0.4] * 200, lambda k: 0.4 * dt * k)
+    np.testing.assert_allclose(following, -0.4 * dt, rtol=1e-9)
+    np.testing.assert_allclose(errors(2.0, [0.4] * 200, lambda k: 0.0), standing, atol=1e-12)  # any start heading
+    np.testing.assert_allclose(errors(3.0, [0.4] * 200, lambda k: 0.4 * dt * k), -0.4 * dt, rtol=1e-6)
 
 
 def test_ground_truth_estimate_is_in_the_base_frame(config):

@@ -12,9 +12,10 @@ aggregates all rounds and the student is trained on it after each round. To wide
 episode samples piecewise-constant velocity commands (ramped, as `runtime.commands` ramps them), pushes the base
 at random and adds noise to the executed actions.
 
-Normalisation is folded into the exported graph (obs -> action in SI units, as the runtime expects). The Euler
-yaw input is masked (weight 0): walking is invariant to the heading, and a policy that read the absolute yaw
-would not generalise to headings its data did not visit.
+Normalisation is folded into the exported graph (obs -> action in SI units, as the runtime expects). The third
+Euler input is the yaw's error to the commanded heading (`runtime.heading`), the reference the teacher steers to,
+not the absolute yaw: the student can then learn the teacher's heading correction, and walking stays invariant
+to where north is.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from bruce_hw.mock import MujocoBackend
 from bruce_hw.types import JointCommand
 from runtime.commands import COMMAND_LIMITS, CommandSchedule
 from runtime.estimation import GroundTruthEstimator, tilt_of
+from runtime.kinematic_estimator import KinematicEstimator
 from runtime.mixing import eq8_torque
 from runtime.policy import ObservationBuilder
 from runtime.safety import SafetyStage
@@ -66,6 +68,9 @@ class DistillSettings:
     learning_rate: float = 1e-3
     fall_height: float = 0.25              # m: an episode ends when the base drops below this or tilts > 45 deg
     fall_trim_s: float = 0.5               # s of samples dropped before a fall
+    # Where the student's base state comes from: "truth" (the simulator's) or "kinematic" (the robot-side
+    # estimator on the same sensors, runtime.kinematic_estimator). The teacher always labels from the truth.
+    observe: str = "truth"
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -148,6 +153,7 @@ def rollout(config: RobotConfig, settings: DistillSettings, rng: np.random.Gener
     backend.configure()
     backend.activate()
     estimator = GroundTruthEstimator(backend)
+    observer = KinematicEstimator(config) if settings.observe == "kinematic" else None
     teacher = WalkingTeacher(config)
     builder = ObservationBuilder(config)
     safety = SafetyStage(config)
@@ -155,6 +161,8 @@ def rollout(config: RobotConfig, settings: DistillSettings, rng: np.random.Gener
     robot = backend.read()
     teacher.reset(robot.joints.q)
     estimator.reset(robot)
+    if observer is not None:
+        observer.reset(robot)
     last_action = robot.joints.q.copy()  # as runtime.policy.PolicyController starts
     decimation = config.policy_decimation
     n_ticks = round(settings.episode_s * config.loop_hz)
@@ -166,10 +174,13 @@ def rollout(config: RobotConfig, settings: DistillSettings, rng: np.random.Gener
     for tick in range(n_ticks):
         t = tick * config.dt
         estimator.update(robot)
+        if observer is not None:
+            observer.update(robot)
         if tick % decimation == 0:
             base = estimator.estimate()
+            seen = base if observer is None else observer.estimate()
             command = commands.at(t)
-            obs = builder.build(tick // decimation / config.policy_hz, command, robot, base, last_action)
+            obs = builder.build(tick // decimation / config.policy_hz, command, robot, seen, last_action)
             label = teacher(robot, base, command)
             obs_log.append(obs)
             label_log.append(label)
@@ -203,11 +214,8 @@ def rollout(config: RobotConfig, settings: DistillSettings, rng: np.random.Gener
 
 def make_student(config: RobotConfig, settings: DistillSettings, obs: np.ndarray,
                  actions: np.ndarray) -> StudentPolicy:
-    builder = ObservationBuilder(config)
     obs_mean = obs.mean(axis=0)
     obs_scale = 1.0 / np.maximum(obs.std(axis=0), 1e-2)
-    yaw = builder.slices["euler"].start + 2
-    obs_mean[yaw], obs_scale[yaw] = 0.0, 0.0  # heading-invariant: the absolute yaw is not an input
     return StudentPolicy(obs_mean, obs_scale, actions.mean(axis=0), np.maximum(actions.std(axis=0), 1e-3),
                          settings.hidden)
 
@@ -278,13 +286,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--epochs", type=int, default=defaults.epochs)
     parser.add_argument("--hidden", type=int, nargs="+", default=list(defaults.hidden), help="MLP layer widths")
     parser.add_argument("--vx", type=float, nargs=2, default=list(defaults.vx), help="vx command range, m/s")
+    parser.add_argument("--observe", choices=("truth", "kinematic"), default=defaults.observe,
+                        help="the student's base state: simulator truth or the robot-side kinematic estimator")
     parser.add_argument("--push", type=float, nargs=2, default=list(defaults.push_impulse_ns),
                         help="push impulse range, N s")
     args = parser.parse_args(argv)
     config = load_config(args.config) if args.config else load_config()
     settings = dataclasses.replace(defaults, seed=args.seed, rounds=args.rounds, episodes_per_round=args.episodes,
                                    episode_s=args.episode_s, epochs=args.epochs, hidden=tuple(args.hidden),
-                                   vx=tuple(args.vx), push_impulse_ns=tuple(args.push))
+                                   vx=tuple(args.vx), push_impulse_ns=tuple(args.push),
+                                   observe=args.observe)
     torch.set_num_threads(1)
     student, history = distill(config, settings)
     from training.export import export_mlp_policy_onnx, sidecar_path

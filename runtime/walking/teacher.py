@@ -34,6 +34,7 @@ import numpy as np
 from bruce_hw.config import RobotConfig
 from bruce_hw.types import RobotState
 from runtime.estimation import BaseEstimate
+from runtime.heading import HeadingReference
 from runtime.walking.gait import gait_phase, lipm_omega, min_jerk, swing_height
 from runtime.walking.leg_ik import SIDES, leg_geometry, leg_ik
 
@@ -57,7 +58,6 @@ class TeacherParams:
     cop_gain: float = 2.0            # centre-of-pressure shift per m of DCM error (single stance)
     cop_front: float = 0.008         # m ahead of the foot centre at most (the toe is 0.0425 ahead)
     cop_back: float = 0.008          # m behind it at most (the heel is 0.0425 behind)
-    heading_lead_max: float = 0.3    # rad, how far the desired heading may lead the measured one
     heading_correction_max: float = 0.02  # rad of stance hip yaw per tick: more twists the foot past its friction
     command_acceleration: tuple[float, float, float] = (0.5, 0.5, 1.0)  # m/s^2, m/s^2, rad/s^2
     velocity_integral_gain: float = 0.3  # 1/s, on the error of the base's velocity in the heading frame
@@ -100,6 +100,8 @@ class WalkingTeacher:
         self.inertial = np.zeros(self.model.nv)
         # Extra stiffness per joint, for both feet down (start-up) and for each stance leg.
         self.boost = {stance_legs: self._boost(stance_legs) for stance_legs in ((0, 1), (0,), (1,))}
+        # Desired base yaw, the policy observation's (runtime.policy): a student sees the error the teacher acts on.
+        self.heading_reference = HeadingReference(self.dt)
         self.reset(config.standing_pose)
 
     # -- state -------------------------------------------------------------------------------------------
@@ -110,7 +112,7 @@ class WalkingTeacher:
         self.swing_yaw0 = 0.0
         self.velocity_bias = [0.0, 0.0]
         self.command = [0.0, 0.0, 0.0]  # the command being followed (vx, vy, wz), rate-limited
-        self.heading: float | None = None  # desired base yaw: the commanded yaw rate, integrated
+        self.heading_reference.reset()
         self.landing = np.zeros(3)
         self.start_offset = None
 
@@ -184,13 +186,9 @@ class WalkingTeacher:
         vy += self.velocity_bias[1]
 
         phase = gait_phase(t, self.period)
-        if self.heading is None:
-            self.heading = yaw
-        self.heading += wz * self.dt
-        # The desired heading never leads the measured one by more than a bound: no wind-up after a slip.
-        lead = math.remainder(self.heading - yaw, math.tau)
-        if abs(lead) > p.heading_lead_max:
-            self.heading = yaw + math.copysign(p.heading_lead_max, lead)
+        # Integrated from the command as given (the policy's observation has no rate limiter); the schedules ramp
+        # the yaw rate slower than the limiter above, so the two agree.
+        heading = self.heading_reference.update(yaw, float(command[2]))
         q_des = np.empty(self.config.n_joints)
         qd_des = np.zeros(self.config.n_joints)
         tau_ff = np.zeros(self.config.n_joints)
@@ -230,7 +228,7 @@ class WalkingTeacher:
             target = ankles[stance].copy()
             target[2] = -p.standing_height
             # The stance foot is fixed in the world, so turning it by the heading error turns the base back.
-            heading_error = math.remainder(yaw - self.heading, math.tau)
+            heading_error = math.remainder(yaw - heading, math.tau)
             heading_error = min(p.heading_correction_max, max(-p.heading_correction_max, heading_error))
             stance_yaw = float(q[self.leg_joints[stance][0]]) + heading_error
             q_des[self.leg_joints[stance]] = self._stance_ik(stance, target, yaw, stance_yaw)
@@ -247,11 +245,11 @@ class WalkingTeacher:
             ankle_torque[self.leg_joints[stance][4]] = -self.mg * (cop + p.foot_centre)
             # Footstep from the DCM.
             if tau_s <= p.replan_until:
-                self.landing = self._landing(ankles[stance], centre, dcm, self.heading, phase.t_remaining, swing,
+                self.landing = self._landing(ankles[stance], centre, dcm, heading, phase.t_remaining, swing,
                                              vx, vy, wz)
             # Swing trajectory relative to the stance ankle, then into the base frame at the measured attitude.
             # Land turned by half a step's turn ahead of the heading, so the stance foot turns symmetrically.
-            swing_yaw_end = math.remainder(self.heading + wz * (phase.t_remaining + 0.5 * self.step_time) - yaw,
+            swing_yaw_end = math.remainder(heading + wz * (phase.t_remaining + 0.5 * self.step_time) - yaw,
                                            math.tau)
             legs = self.leg_joints[swing]
 
