@@ -102,6 +102,9 @@ class ModelsConfig:
     policy: Path | None       # ONNX walking policy; None: the standing controller
     gait_period_s: float
     pinn: Path | None         # ONNX PINN for --transfer pinn
+    # Extra PINN ticks rolled ahead for the Eq. 9 reference (0: the paper's one-step prediction), to cover the
+    # actuators' latency: a torque sent now acts that many ticks later.
+    pinn_lookahead_ticks: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -387,10 +390,15 @@ def _model_file(r: _Reader, key: str) -> Path | None:
 
 def _models(r: _Reader) -> ModelsConfig:
     r.mapping("policy", {"model", "gait_period_s"})
-    r.mapping("pinn", {"model"})
+    pinn = r.mapping("pinn", {"model", "lookahead_ticks"})
+    lookahead = 0
+    if "lookahead_ticks" in pinn:
+        lookahead = r.integer("pinn.lookahead_ticks")
+        if lookahead < 0:
+            raise r.fail("pinn.lookahead_ticks", "an integer >= 0 (0: the paper's one-step reference)", lookahead)
     return ModelsConfig(policy=_model_file(r, "policy.model"),
                         gait_period_s=r.number("policy.gait_period_s", positive=True),
-                        pinn=_model_file(r, "pinn.model"))
+                        pinn=_model_file(r, "pinn.model"), pinn_lookahead_ticks=lookahead)
 
 
 def parse_config(data: Any, path: Path) -> RobotConfig:

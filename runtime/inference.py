@@ -136,8 +136,14 @@ class OnnxPolicy:
 class OnnxPinn:
     """The PINN tick: (q, qd, tau*) -> the simulator's next (q^', qd^'); the LSTM state is carried here."""
 
-    def __init__(self, path: str | Path, n_joints: int):
+    def __init__(self, path: str | Path, n_joints: int, lookahead: int = 0):
+        """`lookahead` > 0: `step` returns the state that many ticks after the next one instead, rolled on from its
+        own prediction at the same tau* on a scratch copy of the LSTM state (the carried state only ever advances
+        one tick per call)."""
+        if lookahead < 0:
+            raise ValueError(f"PINN lookahead: expected ticks >= 0, got {lookahead}")
         self.path = Path(path)
+        self.lookahead = lookahead
         self.session = open_session(self.path, "PINN")
         joint = (1, n_joints)
         shapes = check_signature(self.session, self.path, "PINN",
@@ -164,6 +170,13 @@ class OnnxPinn:
                                   "h_next": self._h[1 - i], "c_next": self._c[1 - i]})
             for i in (0, 1))
         self._ios = (self._bound[0].io, self._bound[1].io)
+        # Look-ahead ticks ping-pong between two scratch states, inputs copied from the previous prediction.
+        self._scratch_h = (np.zeros(state_shape, np.float32), np.zeros(state_shape, np.float32))
+        self._scratch_c = (np.zeros(state_shape, np.float32), np.zeros(state_shape, np.float32))
+        self._ahead = tuple(
+            _Bound(self.session, {**common, "h": self._scratch_h[i], "c": self._scratch_c[i],
+                                  "h_next": self._scratch_h[1 - i], "c_next": self._scratch_c[1 - i]}).io
+            for i in (0, 1)) if lookahead else ()
         self._run = self.session.run_with_iobinding  # bound once: the tick pays no attribute lookups
         self._turn = 0
 
@@ -193,6 +206,13 @@ class OnnxPinn:
         turn = self._turn
         self._run(self._ios[turn])
         self._turn = 1 - turn
+        if self.lookahead:
+            self._scratch_h[0][:] = self._h[1 - turn]
+            self._scratch_c[0][:] = self._c[1 - turn]
+            for k in range(self.lookahead):
+                self.q[:] = self.q_next
+                self.qd[:] = self.qd_next
+                self._run(self._ahead[k % 2])
         both = self._next.astype(np.float64).reshape(-1)  # a fresh copy: callers may keep the arrays
         if not math.isfinite(both @ both):  # all_finite's test, once for both outputs
             raise ModelError(f"PINN model {self.path}: returned non-finite q_next/qd_next")

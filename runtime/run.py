@@ -275,7 +275,7 @@ def build_pinn(config: RobotConfig, transfer: str, pinn_path: Path | None) -> On
     path = pinn_path or config.models.pinn
     if path is None:
         raise ModelError(f"--transfer pinn needs a PINN model: pass --pinn PATH or set pinn.model in {config.path}")
-    pinn = OnnxPinn(path, config.n_joints)
+    pinn = OnnxPinn(path, config.n_joints, lookahead=config.models.pinn_lookahead_ticks)
     pinn.warmup()
     return pinn
 

@@ -147,3 +147,11 @@ def test_default_config_is_found_from_any_directory(tmp_path):
 def test_missing_config_file_is_named(tmp_path):
     with pytest.raises(ConfigError, match="robot config file not found"):
         load_config(tmp_path / "nope.yaml")
+
+
+def test_pinn_lookahead_is_optional_and_checked(config, raw_config, write_config):
+    assert config.models.pinn_lookahead_ticks == 0  # the paper's one-step reference by default
+    raw_config["pinn"]["lookahead_ticks"] = 2
+    assert load_config(write_config(raw_config)).models.pinn_lookahead_ticks == 2
+    raw_config["pinn"]["lookahead_ticks"] = -1
+    _expect_error(write_config, raw_config, "pinn.lookahead_ticks", "an integer >= 0")

@@ -31,6 +31,33 @@ def test_pinn_carries_its_lstm_state_and_resets(stateful_pinn_onnx, config):
     np.testing.assert_array_equal(again[0], first[0])
 
 
+@pytest.mark.parametrize("lookahead", [1, 3])
+def test_pinn_lookahead_rolls_its_own_prediction_on_and_carries_the_one_step_state(stateful_pinn_onnx, config,
+                                                                                   lookahead):
+    ahead = OnnxPinn(stateful_pinn_onnx, config.n_joints, lookahead=lookahead)
+    one = OnnxPinn(stateful_pinn_onnx, config.n_joints)
+    stateless = ort.InferenceSession(str(stateful_pinn_onnx), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(3)
+    names = ["q_next", "qd_next", "h_next", "c_next"]
+    for _ in range(5):
+        q, qd, tau = config.standing_pose + rng.normal(0, 0.05, 10), rng.normal(0, 0.5, 10), rng.normal(0, 1, 10)
+        h, c = one.h.copy(), one.c.copy()
+        one_step = one.step(q, qd, tau)
+        result = ahead.step(q, qd, tau)
+        np.testing.assert_array_equal(ahead.h, one.h)  # the carried state advanced one tick, like the plain one
+        np.testing.assert_array_equal(ahead.c, one.c)
+        feeds = {"q": q[None].astype(np.float32), "qd": qd[None].astype(np.float32),
+                 "tau": tau[None].astype(np.float32), "h": h, "c": c}
+        for _ in range(1 + lookahead):  # the next tick, then `lookahead` more on its own prediction, tau held
+            q_next, qd_next, feeds["h"], feeds["c"] = stateless.run(names, feeds)
+            feeds["q"], feeds["qd"] = q_next, qd_next
+        np.testing.assert_allclose(result[0], q_next[0], atol=1e-6)
+        np.testing.assert_allclose(result[1], qd_next[0], atol=1e-5)
+        assert np.abs(result[1] - one_step[1]).max() > 1e-6  # further ahead is not the one-step answer
+    with pytest.raises(ValueError, match="lookahead"):
+        OnnxPinn(stateful_pinn_onnx, config.n_joints, lookahead=-1)
+
+
 def test_policy_runs_on_bound_buffers(random_policy_onnx, config):
     obs_dim = ObservationBuilder(config).size
     policy = OnnxPolicy(random_policy_onnx, obs_dim, config.n_joints)

@@ -97,7 +97,7 @@ def test_aggregate_means_over_seeds_and_counts_falls():
 def test_bruce_eval_transfer_writes_the_table_and_figures(tmp_path, capsys):
     out = tmp_path / "transfer"
     code = eval_main(["transfer", "--gap", "mild", "--out", str(out), "--seconds", "2.6", "--seeds", "0,1",
-                      "--sweep-seeds", "0", "--latencies-ms", "0,3", "--gain-scales", "0,1", "--jobs", "1"])
+                      "--sweep-seeds", "0", "--latencies-ms", "0,3", "--gain-scales", "0,1", "--jobs", "2"])
     assert code == 0
     report = json.loads((out / "transfer.json").read_text())
     for name in ("tracking", "circle", "reverse", "turn"):
@@ -114,6 +114,9 @@ def test_bruce_eval_transfer_writes_the_table_and_figures(tmp_path, capsys):
     latency = {row["latency_ms"]: row for row in report["sweeps"]["latency"]}
     assert gain[0.0] == pytest.approx(report["tracking"]["direct"]["per_seed"][0]["joint_rmse"], rel=1e-12)
     assert latency[3.0]["direct"]["joint_rmse"] != latency[0.0]["direct"]["joint_rmse"]
+    # the look-ahead variant rolls the reference over the gap's latency: mild has 1 ms, and the sweep follows it
+    assert report["meta"]["lookahead"] == "auto (1)" and report["tracking"]["pinn_ahead"]["seeds"] == 2
+    assert [latency[ms]["pinn_ahead"]["lookahead_ticks"] for ms in (0.0, 3.0)] == [0, 3]
     assert report["meta"]["gap_name"] == "mild" and report["meta"]["seeds"] == [0, 1]
     for name in ("transfer.md", *(e.figure for e in EXPERIMENTS), "fig10_sweeps.png"):
         assert (out / name).stat().st_size > 0, name

@@ -45,6 +45,7 @@ from runtime.run import TRACKING_SKIP_S
 from training.eval_report import json_safe
 
 MODES = ("direct", "pinn")
+LOOKAHEAD_MODE = "pinn_ahead"  # Eq. 9 with the reference rolled ahead over the gap's latency (not the paper's)
 DEFAULT_SECONDS = 20.0
 DEFAULT_LATENCIES_MS = (0.0, 2.0, 4.0, 6.0, 8.0, 10.0)
 DEFAULT_GAIN_SCALES = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0)
@@ -75,12 +76,13 @@ class RunSpec:
     experiment: str
     command: tuple[float, float, float]
     seconds: float
-    mode: str                      # "nominal" (no gap, Eq. 8), "direct" (gap, Eq. 8) or "pinn" (gap, Eq. 9)
-    gap: RealityGap | None
+    mode: str                      # "nominal" (no gap, Eq. 8), "direct" (gap, Eq. 8), "pinn" (gap, Eq. 9) or
+    gap: RealityGap | None         # "pinn_ahead" (gap, Eq. 9 with the reference `lookahead` ticks further ahead)
     controller: str = "policy"
     estimator: str = "truth"
     eq9_scale: float = 1.0
     config: str | None = None
+    lookahead: int = 0
 
 
 @dataclass
@@ -137,11 +139,15 @@ def run_one(spec: RunSpec) -> RunRecord:
     if spec.eq9_scale != 1.0:
         config = dataclasses.replace(config, eq9=PdGains(kp=config.eq9.kp * spec.eq9_scale,
                                                          kd=config.eq9.kd * spec.eq9_scale))
+    if spec.lookahead:
+        config = dataclasses.replace(config, models=dataclasses.replace(config.models,
+                                                                        pinn_lookahead_ticks=spec.lookahead))
     backend = MujocoBackend(config, gap=spec.gap if spec.mode != "nominal" else None)
     n_ticks = round(spec.seconds * config.loop_hz)
     recorder = _TruthRecorder(backend, n_ticks, config.n_joints)
     summary = run_session(backend, config, duration=spec.seconds, realtime=False,
-                          transfer="pinn" if spec.mode == "pinn" else "direct", controller_kind=spec.controller,
+                          transfer="pinn" if spec.mode.startswith("pinn") else "direct",
+                          controller_kind=spec.controller,
                           estimator=spec.estimator, commands=CommandSchedule.constant(*spec.command),
                           recorder=recorder)
     n = recorder.count
@@ -283,13 +289,30 @@ class TransferSettings:
     sweep_seeds: tuple[int, ...] = (0, 1)
     jobs: int = 1
     config: str | None = None
+    lookahead: int | str | None = "auto"  # ticks, "auto" (the gap's latency), or None: no look-ahead variant
+
+    @property
+    def modes(self) -> tuple[str, ...]:
+        return MODES + ((LOOKAHEAD_MODE,) if self.lookahead is not None else ())
 
 
-def _spec(settings: TransferSettings, experiment: Experiment, mode: str, seed: int | None, **changes) -> RunSpec:
-    gap = None if mode == "nominal" else dataclasses.replace(settings.gap, seed=seed)
+def lookahead_ticks(setting: int | str, gap: RealityGap, dt: float = 1e-3) -> int:
+    """The look-ahead variant's ticks: a number as given, or "auto": the ticks between reading the joints and the
+    torque acting on them that the gap adds (actuator plus sensor latency)."""
+    if setting != "auto":
+        return int(setting)
+    return round(gap.actuator_latency_s / dt) + round(gap.sensor_latency_s / dt)
+
+
+def _spec(settings: TransferSettings, experiment: Experiment, mode: str, seed: int | None,
+          gap: RealityGap | None = None, **changes) -> RunSpec:
+    if mode != "nominal":
+        gap = dataclasses.replace(gap or settings.gap, seed=seed)
+    if mode == LOOKAHEAD_MODE:
+        changes["lookahead"] = lookahead_ticks(settings.lookahead, gap)
     return RunSpec(experiment=experiment.name, command=experiment.command, seconds=settings.seconds, mode=mode,
-                   gap=gap, controller=settings.controller, estimator=settings.estimator, config=settings.config,
-                   **changes)
+                   gap=None if mode == "nominal" else gap, controller=settings.controller,
+                   estimator=settings.estimator, config=settings.config, **changes)
 
 
 def _sweep_gap(gap: RealityGap, latency_ms: float) -> RealityGap:
@@ -304,16 +327,15 @@ def plan(settings: TransferSettings) -> list[RunSpec]:
     for name in settings.experiments:
         experiment = by_name[name]
         specs.append(_spec(settings, experiment, "nominal", None))
-        specs += [_spec(settings, experiment, mode, seed) for mode in MODES for seed in settings.seeds]
+        specs += [_spec(settings, experiment, mode, seed) for mode in settings.modes for seed in settings.seeds]
     tracking = by_name["tracking"]
     if "tracking" not in settings.experiments and (settings.latencies_ms or settings.gain_scales):
         specs.append(_spec(settings, tracking, "nominal", None))
     for latency in settings.latencies_ms:
-        for mode in MODES:
+        for mode in settings.modes:
             for seed in settings.sweep_seeds:
-                spec = _spec(settings, tracking, mode, seed)
-                specs.append(dataclasses.replace(spec, experiment="sweep_latency",
-                                                 gap=_sweep_gap(spec.gap, latency)))
+                spec = _spec(settings, tracking, mode, seed, gap=_sweep_gap(settings.gap, latency))
+                specs.append(dataclasses.replace(spec, experiment="sweep_latency"))
     for scale in settings.gain_scales:
         for seed in settings.sweep_seeds:
             spec = _spec(settings, tracking, "pinn", seed, eq9_scale=scale)
@@ -352,25 +374,28 @@ def evaluate(settings: TransferSettings, records: list[RunRecord]) -> tuple[dict
         entry = {"command": list(experiment.command), "seconds": settings.seconds,
                  "nominal": run_metrics(reference, reference, experiment)}
         traces[name] = {"nominal": reference}
-        for mode in MODES:
+        for mode in settings.modes:
             runs = [r for r in records if r.spec.experiment == name and r.spec.mode == mode]
             entry[mode] = aggregate([run_metrics(r, reference, experiment) for r in runs])
             traces[name][mode] = runs[0]
-        direct, pinn = entry["direct"], entry["pinn"]
-        entry["pinn_over_direct"] = {
-            key: (pinn[key] / direct[key] if direct[key] else float("nan"))
-            for key in ("joint_rmse", "mean_radial_deviation", "drift") if key in direct}
+        direct = entry["direct"]
+        for mode in settings.modes[1:]:
+            entry[f"{mode}_over_direct"] = {
+                key: (entry[mode][key] / direct[key] if direct[key] else float("nan"))
+                for key in ("joint_rmse", "mean_radial_deviation", "drift") if key in direct}
         report[name] = entry
     reference = nominal["tracking"]
     tracking = by_name["tracking"]
     sweeps: dict = {"latency": [], "eq9_gain": []}
     for latency in settings.latencies_ms:
         row = {"latency_ms": latency}
-        for mode in MODES:
+        for mode in settings.modes:
             runs = [r for r in records if r.spec.experiment == "sweep_latency" and r.spec.mode == mode
                     and abs(r.spec.gap.actuator_latency_s - latency / 1000.0) < 1e-12]
             metrics = aggregate([run_metrics(r, reference, tracking) for r in runs])
             row[mode] = {"joint_rmse": metrics["joint_rmse"], "falls": metrics["falls"], "seeds": metrics["seeds"]}
+            if mode == LOOKAHEAD_MODE:
+                row[mode]["lookahead_ticks"] = runs[0].spec.lookahead
         sweeps["latency"].append(row)
     direct_at_profile = None
     for scale in settings.gain_scales:
@@ -393,12 +418,18 @@ def _fmt(value, digits: int = 3) -> str:
 
 
 def markdown(report: dict, meta: dict) -> str:
+    experiments = [entry for name, entry in report.items() if name != "sweeps"]
+    modes = [m for m in ("direct", "pinn", LOOKAHEAD_MODE) if experiments and m in experiments[0]]
+    names = {"direct": "direct (Eq. 8)", "pinn": "PINN (Eq. 9)", LOOKAHEAD_MODE: "PINN, look-ahead"}
+    ahead = f"; look-ahead: {meta['lookahead']} ticks" if LOOKAHEAD_MODE in modes else ""
     lines = [f"# Transfer rehearsal: gap profile `{meta['gap_name']}`", "",
              f"Controller `{meta['controller']}`, estimator `{meta['estimator']}`, {meta['seconds']:g} s per run, "
-             f"gap seeds {meta['seeds']} (mean over seeds; falls = seeds that fell). Scored after "
-             f"{TRACKING_SKIP_S:g} s on simulator truth against the nominal mock (Eq. 8, no gap).", "",
-             "| experiment | metric | nominal | direct (Eq. 8) | PINN (Eq. 9) | PINN / direct |",
-             "|---|---|---|---|---|---|"]
+             f"gap seeds {meta['seeds']} (mean over seeds; falls = seeds that fell){ahead}. Scored after "
+             f"{TRACKING_SKIP_S:g} s on simulator truth against the nominal mock (Eq. 8, no gap); a run that fell "
+             "is scored up to its fall.", "",
+             "| experiment | metric | nominal | " + " | ".join(names[m] for m in modes) + " | "
+             + " | ".join(f"{names[m]} / direct" for m in modes[1:]) + " |",
+             "|---|---|---|" + "---|" * (2 * len(modes) - 1)]
     rows = (("tracking", "joint_rmse", "joint RMSE (rad)"),
             ("tracking", "joint_velocity_rmse", "joint velocity RMSE (rad/s)"),
             ("circle", "mean_radial_deviation", "mean radial deviation (m)"),
@@ -407,27 +438,33 @@ def markdown(report: dict, meta: dict) -> str:
         if name not in report:
             continue
         entry = report[name]
-        ratio = entry["direct"].get(key) and entry["pinn"].get(key, float("nan")) / entry["direct"][key]
-        lines.append(f"| {name} | {label} | {_fmt(entry['nominal'].get(key))} | {_fmt(entry['direct'].get(key))} | "
-                     f"{_fmt(entry['pinn'].get(key))} | {_fmt(ratio)} |")
+        direct = entry["direct"].get(key)
+        values = [_fmt(entry[m].get(key)) for m in modes]
+        ratios = [_fmt(entry[m].get(key, float("nan")) / direct if direct else None) for m in modes[1:]]
+        lines.append(f"| {name} | {label} | {_fmt(entry['nominal'].get(key))} | " + " | ".join(values) + " | "
+                     + " | ".join(ratios) + " |")
     for name in ("tracking", "circle", "reverse", "turn"):
         if name in report:
             entry = report[name]
             lines.append(f"| {name} | falls | {int(entry['nominal']['fell'])}/1 | "
-                         f"{entry['direct']['falls']}/{entry['direct']['seeds']} | "
-                         f"{entry['pinn']['falls']}/{entry['pinn']['seeds']} | |")
+                         + " | ".join(f"{entry[m]['falls']}/{entry[m]['seeds']}" for m in modes)
+                         + " |" * len(modes))
     sweeps = report.get("sweeps", {})
     if sweeps.get("latency"):
-        lines += ["", "Tracking joint RMSE (rad) against actuator latency:", "",
-                  "| latency (ms) | direct | PINN | PINN / direct |", "|---|---|---|---|"]
+        swept = [m for m in modes if m in sweeps["latency"][0]]
+        lines += ["", "Tracking joint RMSE (rad) against actuator latency (falls in brackets):", "",
+                  "| latency (ms) | " + " | ".join(names[m] for m in swept) + " |", "|---|" + "---|" * len(swept)]
         for row in sweeps["latency"]:
-            d, p = row["direct"]["joint_rmse"], row["pinn"]["joint_rmse"]
-            lines.append(f"| {row['latency_ms']:g} | {_fmt(d)} | {_fmt(p)} | {_fmt(p / d if d else float('nan'))} |")
+            cells = [f"{_fmt(row[m]['joint_rmse'])}" + (f" ({row[m]['falls']}/{row[m]['seeds']} fell)"
+                                                         if row[m]["falls"] else "") for m in swept]
+            lines.append(f"| {row['latency_ms']:g} | " + " | ".join(cells) + " |")
     if sweeps.get("eq9_gain"):
         lines += ["", f"Tracking joint RMSE (rad) against the Eq. 9 gains (scale on Kp', Kd'); direct transfer: "
-                      f"{_fmt(sweeps.get('eq9_gain_direct_reference'))}:", "", "| scale | PINN |", "|---|---|"]
+                      f"{_fmt(sweeps.get('eq9_gain_direct_reference'))}:", "", "| scale | PINN (Eq. 9) |",
+                  "|---|---|"]
         for row in sweeps["eq9_gain"]:
-            lines.append(f"| {row['scale']:g} | {_fmt(row['pinn']['joint_rmse'])} |")
+            fell = f" ({row['pinn']['falls']}/{row['pinn']['seeds']} fell)" if row["pinn"]["falls"] else ""
+            lines.append(f"| {row['scale']:g} | {_fmt(row['pinn']['joint_rmse'])}{fell} |")
     return "\n".join(lines) + "\n"
 
 
@@ -437,8 +474,9 @@ def plot(out: Path, report: dict, traces: dict, joint_names: tuple[str, ...]) ->
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    colours = {"nominal": "k", "direct": "tab:red", "pinn": "tab:blue"}
-    labels = {"nominal": "simulator (nominal)", "direct": "direct (Eq. 8)", "pinn": "PINN (Eq. 9)"}
+    colours = {"nominal": "k", "direct": "tab:red", "pinn": "tab:blue", LOOKAHEAD_MODE: "tab:green"}
+    labels = {"nominal": "simulator (nominal)", "direct": "direct (Eq. 8)", "pinn": "PINN (Eq. 9)",
+              LOOKAHEAD_MODE: "PINN, look-ahead"}
     written = []
     if "tracking" in traces:
         fig, axes = plt.subplots(2, 3, figsize=(15, 7.5))
@@ -457,10 +495,11 @@ def plot(out: Path, report: dict, traces: dict, joint_names: tuple[str, ...]) ->
             ax.legend(fontsize=7)
         entry = report["tracking"]
         x = np.arange(len(joint_names))
-        axes[1, 2].bar(x - 0.2, entry["direct"]["joint_rmse_per_joint"], 0.4, color=colours["direct"],
-                       label=labels["direct"])
-        axes[1, 2].bar(x + 0.2, entry["pinn"]["joint_rmse_per_joint"], 0.4, color=colours["pinn"],
-                       label=labels["pinn"])
+        shown = [m for m in ("direct", "pinn", LOOKAHEAD_MODE) if m in entry]
+        width = 0.8 / len(shown)
+        for i, mode in enumerate(shown):
+            axes[1, 2].bar(x + (i - (len(shown) - 1) / 2) * width, entry[mode]["joint_rmse_per_joint"], width,
+                           color=colours[mode], label=labels[mode])
         axes[1, 2].set_xticks(x, joint_names, rotation=60, fontsize=7)
         axes[1, 2].set_title("joint RMSE against the simulator (rad)")
         axes[1, 2].legend(fontsize=7)
@@ -501,7 +540,7 @@ def plot(out: Path, report: dict, traces: dict, joint_names: tuple[str, ...]) ->
         fig, (lat_ax, gain_ax) = plt.subplots(1, 2, figsize=(12, 4.5))
         if sweeps.get("latency"):
             lat = [r["latency_ms"] for r in sweeps["latency"]]
-            for mode in MODES:
+            for mode in (m for m in colours if m in sweeps["latency"][0]):
                 lat_ax.plot(lat, [r[mode]["joint_rmse"] for r in sweeps["latency"]], "o-", color=colours[mode],
                             label=labels[mode])
             lat_ax.set_xlabel("actuator latency (ms)")
@@ -552,6 +591,9 @@ def add_parser(commands) -> argparse.ArgumentParser:
     p.add_argument("--gain-scales", default=",".join(f"{v:g}" for v in DEFAULT_GAIN_SCALES),
                    help="Eq. 9 gain sweep, '' to skip (default: %(default)s)")
     p.add_argument("--sweep-seeds", default="0,1", help="gap noise seeds per sweep point (default: %(default)s)")
+    p.add_argument("--lookahead", default="auto",
+                   help="the look-ahead variant's extra PINN ticks: N, 'auto' (the gap's actuator + sensor latency) "
+                        "or 'off' (default: %(default)s)")
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="parallel runs (default: CPU count)")
     p.add_argument("--config", default=None, help="robot config (default: BRUCE's)")
     return p
@@ -572,7 +614,18 @@ def settings_from_args(args) -> TransferSettings:
     latencies, scales = _numbers(args.latencies_ms, "--latencies-ms"), _numbers(args.gain_scales, "--gain-scales")
     if (latencies or scales) and not sweep_seeds:
         raise TransferError("--sweep-seeds: at least one seed when sweeping")
-    return TransferSettings(gap=load_gap(args.gap), gap_name=args.gap, seeds=seeds, seconds=args.seconds,
+    lookahead: int | str | None = args.lookahead
+    if lookahead == "off":
+        lookahead = None
+    elif lookahead != "auto":
+        try:
+            lookahead = int(lookahead)
+        except ValueError:
+            raise TransferError(f"--lookahead: expected ticks >= 1, 'auto' or 'off', got {args.lookahead!r}") from None
+        if lookahead < 1:
+            raise TransferError(f"--lookahead: expected ticks >= 1, 'auto' or 'off', got {args.lookahead!r}")
+    return TransferSettings(gap=load_gap(args.gap), gap_name=args.gap, lookahead=lookahead, seeds=seeds,
+                            seconds=args.seconds,
                             controller=args.controller, estimator=args.estimator, experiments=names,
                             latencies_ms=latencies, gain_scales=scales, sweep_seeds=sweep_seeds,
                             jobs=max(1, args.jobs), config=args.config)
@@ -591,6 +644,9 @@ def run_transfer(args, argv: list[str]) -> int:
             "gap": {k: v for k, v in dataclasses.asdict(settings.gap).items()}, "controller": settings.controller,
             "estimator": settings.estimator, "seconds": settings.seconds, "seeds": list(settings.seeds),
             "sweep_seeds": list(settings.sweep_seeds), "joints": list(config.joints),
+            "lookahead": None if settings.lookahead is None else (
+                f"auto ({lookahead_ticks('auto', settings.gap)})" if settings.lookahead == "auto"
+                else settings.lookahead),
             "scored_after_s": TRACKING_SKIP_S}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "transfer.json").write_text(json.dumps(json_safe({"meta": meta, **report}), indent=2) + "\n")
