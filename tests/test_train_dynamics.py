@@ -57,11 +57,12 @@ def test_a_short_training_run_lowers_the_loss_and_writes_a_loadable_checkpoint(w
     np.testing.assert_allclose(model.q_mean.numpy() if kind == "pinn" else model.input_mean[:N].numpy(),
                                payload["stats"]["q_mean"], rtol=1e-6)
     if kind == "pinn":  # the PINN carries the joint-range stop, and the simulator's data never reaches it
-        lower, upper = joint_stop_range(config)
+        q = np.load(path)["q"]
+        lower, upper = joint_stop_range(config, q[:6400])  # the training part
         np.testing.assert_allclose(model.q_stop_lower.numpy(), lower, rtol=1e-6)
         np.testing.assert_allclose(model.q_stop_upper.numpy(), upper, rtol=1e-6)
-        q = np.load(path)["q"]
-        assert (q > lower).all() and (q < upper).all()
+        assert (q[:6400] > lower).all() and (q[:6400] < upper).all()
+        assert (lower <= config.q_lower - 0.1).all() and (upper >= config.q_upper + 0.1).all()
 
 
 def test_resume_after_an_interruption_gives_the_uninterrupted_result(walk_data, tmp_path, monkeypatch):

@@ -20,12 +20,12 @@ kernels after onnxruntime's fusions: at 1 kHz the per-kernel cost, not FLOPs, se
 anchors §9).
 
 Joint-range stop. The simulator the PINN imitates stops every joint at its MJCF range, softly (MuJoCo's limit
-constraint lets walking push a straight knee 0.065 rad past 0). The network alone knows nothing of this: in a
+constraint lets walking push a straight knee 0.065-0.133 rad past 0). The network alone knows nothing of this: in a
 long open-loop rollout q drifts out of the training range, where the ResNet's linear skips extrapolate M^-1 until
 the rollout overflows (43 of 100 1000-step rollouts did). So the step states that physics: the input q is held
 inside [q_stop_lower, q_stop_upper], and a q' beyond it is put back on it with qd' = 0 (an inelastic stop). The
-range is the robot config's joint range widened by JOINT_STOP_MARGIN to cover the soft-limit penetration, so on
-recorded data the stop never acts and teacher-forced training is unchanged by it. Without `set_joint_stop` the
+range is the robot config's joint range, extended to what the training data reached, widened by JOINT_STOP_MARGIN,
+so on the data the stop never acts and teacher-forced training is unchanged by it. Without `set_joint_stop` the
 range is unbounded and the step is the paper's.
 """
 
@@ -49,16 +49,20 @@ if TYPE_CHECKING:
 
 ACTIVATIONS = {"tanh": nn.Tanh, "elu": nn.ELU}
 
-# rad beyond the MJCF joint range where the PINN's stop sits: MuJoCo's soft limits let the simulator go past the
-# range under load (0.08 rad at most in 90 s of walking data), and the stop must not act on what the simulator does.
+# rad beyond the joint range the simulator reaches where the PINN's stop sits.
 JOINT_STOP_MARGIN = 0.1
 
 
-def joint_stop_range(robot_config) -> tuple[np.ndarray, np.ndarray]:
+def joint_stop_range(robot_config, q_seen: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(lower, upper) of the PINN's joint-range stop: the config's joints.position_limits (which the MJCF's joint
-    ranges equal) widened by JOINT_STOP_MARGIN."""
-    return (np.asarray(robot_config.q_lower) - JOINT_STOP_MARGIN,
-            np.asarray(robot_config.q_upper) + JOINT_STOP_MARGIN)
+    ranges equal), extended to every angle in `q_seen` [T, n] (the training data: MuJoCo's limits are soft, and
+    walking pushed a straight knee 0.065-0.133 rad past 0 in our recordings), widened by JOINT_STOP_MARGIN. So the
+    stop never acts on what the simulator was seen to do."""
+    lower, upper = np.asarray(robot_config.q_lower, float), np.asarray(robot_config.q_upper, float)
+    if q_seen is not None and len(q_seen):
+        lower = np.minimum(lower, np.min(q_seen, axis=0))
+        upper = np.maximum(upper, np.max(q_seen, axis=0))
+    return lower - JOINT_STOP_MARGIN, upper + JOINT_STOP_MARGIN
 
 
 @dataclass(frozen=True)

@@ -182,7 +182,7 @@ def train(data_path: str | Path, kind: str, out: str | Path, *, model_config: di
         model = build_model(kind, model_config)
         model.fit_normalisation(stats)
         if isinstance(model, PinnStep):  # the stop is the PINN's stated physics; the baselines are as published
-            model.set_joint_stop(*joint_stop_range(robot_config))
+            model.set_joint_stop(*joint_stop_range(robot_config, train_part.q))
         optimizer, scheduler = make_optimizer(model, config)
         rng = np.random.default_rng(config.seed)
         start_epoch, history = 0, []
