@@ -228,12 +228,32 @@ def apply_to_model(gap: RealityGap, model: mujoco.MjModel, dofs: slice, acts: sl
         mujoco.mj_setConst(model, mujoco.MjData(model))
 
 
+class DelayLine:
+    """A fixed delay of `len(items)` ticks: each `pass_through(value)` returns what went in that many calls ago
+    (at first, `items`, oldest first); no delay when empty."""
+
+    def __init__(self, items: Sequence[Any] = ()):
+        self.fill(items)
+
+    def fill(self, items: Sequence[Any]) -> None:
+        self._ring = list(items)
+        self._at = 0
+
+    def pass_through(self, value: Any) -> Any:
+        ring = self._ring
+        if not ring:
+            return value
+        out, ring[self._at] = ring[self._at], value
+        self._at = (self._at + 1) % len(ring)
+        return out
+
+
 class ActuatorGap:
-    """The command path: a ring of what was sent (bus latency) and the motor's first-order torque lag."""
+    """The command path: a delay line of what was sent (bus latency) and the motor's first-order torque lag."""
 
     def __init__(self, latency: int, time_constant_s: float, dt: float, n_joints: int):
-        self._ring: list[Any] = [None] * latency
-        self._at = 0
+        self.latency = latency
+        self._sent = DelayLine([None] * latency)
         # Exact discretisation of tau_applied' = (tau_cmd - tau_applied) / T under a zero-order-hold command.
         self.alpha = 1.0 - math.exp(-dt / time_constant_s) if time_constant_s > 0.0 else 1.0
         self._applied = np.zeros(n_joints)
@@ -241,19 +261,12 @@ class ActuatorGap:
 
     def reset(self) -> None:
         """Nothing sent yet, motors at zero torque."""
-        for i in range(len(self._ring)):
-            self._ring[i] = None
-        self._at = 0
+        self._sent.fill([None] * self.latency)
         self._applied[:] = 0.0
 
     def delayed(self, sent: Any) -> Any:
         """What reaches the motors this tick, given what was sent (None before the first command)."""
-        ring = self._ring
-        if not ring:
-            return sent
-        arrived, ring[self._at] = ring[self._at], sent
-        self._at = (self._at + 1) % len(ring)
-        return arrived
+        return self._sent.pass_through(sent)
 
     def lag(self, tau: np.ndarray) -> np.ndarray:
         """The torque the motors apply during this tick (an internal buffer: copy what you keep)."""
@@ -280,23 +293,15 @@ class SensorGap:
         self._encoder_noise = bool(np.any(self.q_noise) or np.any(self.qd_noise))
         self._bias = bool(np.any(self.q_bias) or np.any(self.qd_bias) or np.any(self.gyro_bias)
                           or np.any(self.accel_bias))
-        self._ring: list[RobotState] = []
-        self._at = 0
+        self._measured = DelayLine()
 
     def reset(self, measure: Callable[[], RobotState]) -> None:
         """Fill the delay line with measurements of the state just placed (what a robot reports before any
         newer sample has come through)."""
-        self._ring = [self._corrupt(measure()) for _ in range(self.latency)]
-        self._at = 0
+        self._measured.fill([self._corrupt(measure()) for _ in range(self.latency)])
 
     def report(self, measured: RobotState) -> RobotState:
-        measured = self._corrupt(measured)
-        ring = self._ring
-        if not ring:
-            return measured
-        reported, ring[self._at] = ring[self._at], measured
-        self._at = (self._at + 1) % len(ring)
-        return reported
+        return self._measured.pass_through(self._corrupt(measured))
 
     def _corrupt(self, state: RobotState) -> RobotState:
         """Noise and bias, in place on the measurement's own arrays."""
