@@ -161,18 +161,19 @@ def run_one(spec: RunSpec) -> RunRecord:
 
 # -- metrics ---------------------------------------------------------------------------------------------------
 def scored(record: RunRecord, skip_s: float = TRACKING_SKIP_S) -> slice:
-    return slice(min(len(record.t), round(skip_s / max(record.t[1] - record.t[0], 1e-9)) if len(record.t) > 1
-                     else 0), len(record.t))
+    """The ticks of a run that are scored: from `skip_s` on."""
+    return slice(int(np.searchsorted(record.t, skip_s - 1e-9)), len(record.t))
 
 
-def joint_rmse(run: RunRecord, reference: RunRecord, skip_s: float = TRACKING_SKIP_S) -> np.ndarray:
-    """Per-joint RMSE of the true joint angles against the reference run, tick by tick, after `skip_s`, over
-    the ticks both runs reached: [n]."""
-    n = min(len(run.t), len(reference.t))
-    start = min(n, round(skip_s / (run.t[1] - run.t[0]))) if n > 1 else n
-    if n - start < 1:
+def joint_rmse(run: RunRecord, reference: RunRecord, skip_s: float = TRACKING_SKIP_S, what: str = "q") -> np.ndarray:
+    """Per-joint RMSE of the true joint angles (`what` = "q") or velocities ("qd") against the reference run, tick
+    by tick, after `skip_s`, over the ticks both runs reached: [n] (NaN when none is left)."""
+    shorter = run if len(run.t) <= len(reference.t) else reference
+    part = scored(shorter, skip_s)
+    a, b = getattr(run, what)[part], getattr(reference, what)[part]
+    if len(a) == 0:
         return np.full(run.q.shape[1], np.nan)
-    return np.sqrt(np.mean((run.q[start:n] - reference.q[start:n]) ** 2, axis=0))
+    return np.sqrt(np.mean((a - b) ** 2, axis=0))
 
 
 def ideal_path(command: tuple[float, float, float], t: np.ndarray, start_xy: np.ndarray, start_yaw: float,
@@ -246,10 +247,7 @@ def velocity_summary(record: RunRecord, command: tuple[float, float, float],
 def run_metrics(record: RunRecord, nominal: RunRecord, experiment: Experiment) -> dict:
     """Every metric of one run (the nominal run scored against itself has RMSE 0)."""
     per_joint = joint_rmse(record, nominal)
-    n = min(len(record.t), len(nominal.t))
-    start = min(n, round(TRACKING_SKIP_S / (record.t[1] - record.t[0]))) if n > 1 else n
-    qd_rmse = (np.sqrt(np.mean((record.qd[start:n] - nominal.qd[start:n]) ** 2, axis=0)) if n > start
-               else np.full(record.q.shape[1], np.nan))
+    qd_rmse = joint_rmse(record, nominal, what="qd")
     out = {"fell": record.fell, "seconds": float(len(record.t) * (record.t[1] - record.t[0])) if len(record.t) > 1
            else 0.0, "joint_rmse": float(np.mean(per_joint)), "joint_rmse_per_joint": per_joint.tolist(),
            "joint_velocity_rmse": float(np.mean(qd_rmse)), **drift(record, experiment.command),
