@@ -151,38 +151,28 @@ class MujocoBackend(Backend):
 
     # -- per tick ----------------------------------------------------------------------------------------
     def _motor_torque(self) -> np.ndarray:
+        """The torque the motors apply this tick: the command (or, faulted, damping) evaluated on the present state
+        and saturated per actuator; with a reality gap, what arrives after the bus latency, saturated at the gap's
+        limit, then lagged by the motor."""
+        sent = DAMPING if self._state is LifecycleState.FAULT else self._command
+        gap = self._actuator_gap
+        arrived = sent if gap is None else gap.delayed(sent)
         data = self.data
-        q, qd = data.qpos[self._qpos], data.qvel[self._dofs]
-        if self._state is LifecycleState.FAULT:
-            return -self._damping_kd * qd
-        if self._command is None:
-            return self._zero
-        tau = self._command.torque(q, qd)
-        if not np.all(np.isfinite(tau)):
-            raise BackendError("mock backend: non-finite joint torque commanded")
-        return self.config.coupling.saturate(tau, self.config.actuator_torque_limit)
-
-    def _gap_motor_torque(self) -> np.ndarray:
-        """`_motor_torque` through the reality gap: what arrives after the bus latency, evaluated on the present
-        state, saturated at the gap's per-actuator limit, then lagged by the motor."""
-        data = self.data
-        q, qd = data.qpos[self._qpos], data.qvel[self._dofs]
-        arrived = self._actuator_gap.delayed(DAMPING if self._state is LifecycleState.FAULT else self._command)
+        qd = data.qvel[self._dofs]
         if arrived is None:
             tau = self._zero
         elif arrived is DAMPING:
             tau = -self._damping_kd * qd
         else:
-            tau = arrived.torque(q, qd)
+            tau = arrived.torque(data.qpos[self._qpos], qd)
             if not np.all(np.isfinite(tau)):
                 raise BackendError("mock backend: non-finite joint torque commanded")
             tau = self.config.coupling.saturate(tau, self._torque_limit)
-        return self._actuator_gap.lag(tau)
+        return tau if gap is None else gap.lag(tau)
 
     def _read(self) -> RobotState:
         data = self.data
-        # The model's motors clamp to the joint box limits.
-        data.ctrl[self._acts] = self._motor_torque() if self._actuator_gap is None else self._gap_motor_torque()
+        data.ctrl[self._acts] = self._motor_torque()  # the model's motors clamp to the joint box limits
         if self._push_until >= 0.0:
             pushing = data.time < self._push_until - 1e-9
             data.xfrc_applied[self._base, :3] = self._push_force if pushing else 0.0
