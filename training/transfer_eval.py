@@ -39,9 +39,10 @@ from pathlib import Path
 import numpy as np
 
 from bruce_hw.config import ConfigError, PdGains, load_config
-from bruce_hw.reality_gap import GapError, RealityGap, load_gap
+from bruce_hw.reality_gap import GapError, RealityGap, latency_ticks, load_gap
 from runtime.commands import CommandSchedule
-from runtime.run import TRACKING_SKIP_S
+from runtime.estimation import euler_of
+from runtime.run import TRACKING_SKIP_S, heading_velocity
 from training.eval_report import json_safe
 
 MODES = ("direct", "pinn")
@@ -116,9 +117,6 @@ class _TruthRecorder:
         self.velocity = np.full((n_ticks, 3), np.nan)
 
     def __call__(self, tick: int, q, qd, tau) -> None:
-        from runtime.estimation import euler_of
-        from runtime.run import heading_velocity
-
         truth = self.backend.ground_truth()
         i = self.count
         if i >= len(self.q):
@@ -299,7 +297,7 @@ def lookahead_ticks(setting: int | str, gap: RealityGap, dt: float = 1e-3) -> in
     torque acting on them that the gap adds (actuator plus sensor latency)."""
     if setting != "auto":
         return int(setting)
-    return round(gap.actuator_latency_s / dt) + round(gap.sensor_latency_s / dt)
+    return latency_ticks(gap.actuator_latency_s, dt) + latency_ticks(gap.sensor_latency_s, dt)
 
 
 def _spec(settings: TransferSettings, experiment: Experiment, mode: str, seed: int | None,
