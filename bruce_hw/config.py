@@ -7,6 +7,7 @@ file, the dotted key path and what was expected, before anything talks to a robo
 from __future__ import annotations
 
 import copy
+import itertools
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -100,7 +101,9 @@ class SafetyConfig:
 @dataclass(frozen=True, slots=True)
 class ModelsConfig:
     policy: Path | None       # ONNX walking policy; None: the standing controller
-    gait_period_s: float
+    # C_T of the policy's gait clock as (vx, C_T) points, linear between them (runtime.walking.gait.GaitClock);
+    # a single number in the YAML is a constant C_T.
+    gait_period_s: tuple[tuple[float, float], ...]
     pinn: Path | None         # ONNX PINN for --transfer pinn
     # Extra PINN ticks rolled ahead for the Eq. 9 reference (0: the paper's one-step prediction), to cover the
     # actuators' latency: a torque sent now acts that many ticks later.
@@ -388,6 +391,25 @@ def _model_file(r: _Reader, key: str) -> Path | None:
     return path if path.is_absolute() else (r.path.parent / path)
 
 
+def _gait_cadence(r: _Reader) -> tuple[tuple[float, float], ...]:
+    key = "policy.gait_period_s"
+    value = r.node(key)
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        return ((0.0, r.number(key, positive=True)),)
+    expected = "a period > 0 (s) or a list of [vx (m/s), period > 0 (s)] pairs in increasing vx"
+    if not isinstance(value, list) or not value:
+        raise r.fail(key, expected, value)
+    points = []
+    for point in value:
+        if (not isinstance(point, list) or len(point) != 2
+                or any(isinstance(x, bool) or not isinstance(x, int | float) for x in point) or not point[1] > 0):
+            raise r.fail(key, expected, point)
+        points.append((float(point[0]), float(point[1])))
+    if any(b[0] <= a[0] for a, b in itertools.pairwise(points)):
+        raise r.fail(key, expected, value)
+    return tuple(points)
+
+
 def _models(r: _Reader) -> ModelsConfig:
     r.mapping("policy", {"model", "gait_period_s"})
     pinn = r.mapping("pinn", {"model", "lookahead_ticks"})
@@ -397,7 +419,7 @@ def _models(r: _Reader) -> ModelsConfig:
         if lookahead < 0:
             raise r.fail("pinn.lookahead_ticks", "an integer >= 0 (0: the paper's one-step reference)", lookahead)
     return ModelsConfig(policy=_model_file(r, "policy.model"),
-                        gait_period_s=r.number("policy.gait_period_s", positive=True),
+                        gait_period_s=_gait_cadence(r),
                         pinn=_model_file(r, "pinn.model"), pinn_lookahead_ticks=lookahead)
 
 

@@ -6,7 +6,7 @@ its graph):
 
 | slice            | dims | what                                                   |
 |------------------|------|--------------------------------------------------------|
-| clock            | 2    | sin(2 pi t / C_T), cos(2 pi t / C_T), C_T = policy.gait_period_s |
+| clock            | 2    | sin, cos of the gait phase (2 pi t / C_T at a constant C_T; `GaitClock`) |
 | command          | 3    | commanded vx, vy (m/s, heading frame) and yaw rate (rad/s)       |
 | q                | n    | joint positions (rad)                                  |
 | qd               | n    | joint velocities (rad/s)                               |
@@ -17,8 +17,9 @@ its graph):
 
 The third Euler entry is not the absolute yaw, which a policy cannot generalise over (walking does not depend on
 where north is), but the yaw's error to the heading the command asks for (`runtime.heading`), the state the
-walking teacher steers with: a student that sees it can learn the teacher's heading correction. The builder
-keeps that reference, so it is built once per policy tick, in order, and reset at the start of a run.
+walking teacher steers with: a student that sees it can learn the teacher's heading correction. The clock is
+the teacher's `GaitClock`, whose period follows the commanded forward speed. The builder keeps the reference and
+the clock, so it is built once per policy tick, in order, and reset at the start of a run.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from bruce_hw.types import RobotState
 from runtime.estimation import BaseEstimate
 from runtime.heading import HeadingReference
 from runtime.inference import OnnxPolicy
+from runtime.walking.gait import GaitClock
 
 
 def observation_layout(n_joints: int) -> tuple[tuple[str, int], ...]:
@@ -41,7 +43,6 @@ def observation_layout(n_joints: int) -> tuple[tuple[str, int], ...]:
 
 class ObservationBuilder:
     def __init__(self, config: RobotConfig):
-        self.gait_period_s = config.models.gait_period_s
         self.slices: dict[str, slice] = {}
         start = 0
         for name, width in observation_layout(config.n_joints):
@@ -49,13 +50,15 @@ class ObservationBuilder:
             start += width
         self.size = start
         self.heading_reference = HeadingReference(1.0 / config.policy_hz)
+        self.clock = GaitClock(config.models.gait_period_s, 1.0 / config.policy_hz)
 
     def reset(self) -> None:
         self.heading_reference.reset()
+        self.clock.reset()
 
-    def build(self, t: float, command: np.ndarray, state: RobotState, base: BaseEstimate,
+    def build(self, command: np.ndarray, state: RobotState, base: BaseEstimate,
               last_action: np.ndarray) -> np.ndarray:
-        phase = 2.0 * math.pi * t / self.gait_period_s
+        phase = 2.0 * math.pi * self.clock.tick(float(command[0]))
         s = self.slices
         obs = np.empty(self.size)
         obs[s["clock"]] = (math.sin(phase), math.cos(phase))
@@ -78,17 +81,14 @@ class PolicyController:
     def __init__(self, config: RobotConfig, policy: OnnxPolicy):
         self.builder = ObservationBuilder(config)
         self.policy = policy
-        self.dt = 1.0 / config.policy_hz
         self.reset(config.standing_pose)
 
     def reset(self, q_measured: np.ndarray) -> None:
-        self.step = 0
         self.builder.reset()
         self.last_action = np.array(q_measured, dtype=float)
 
     def __call__(self, state: RobotState, base: BaseEstimate, command: np.ndarray) -> np.ndarray:
-        obs = self.builder.build(self.step * self.dt, command, state, base, self.last_action)
+        obs = self.builder.build(command, state, base, self.last_action)
         a = self.policy(obs)
         self.last_action = a
-        self.step += 1
         return a

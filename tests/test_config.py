@@ -155,3 +155,13 @@ def test_pinn_lookahead_is_optional_and_checked(config, raw_config, write_config
     assert load_config(write_config(raw_config)).models.pinn_lookahead_ticks == 2
     raw_config["pinn"]["lookahead_ticks"] = -1
     _expect_error(write_config, raw_config, "pinn.lookahead_ticks", "an integer >= 0")
+
+
+def test_gait_period_is_a_number_or_a_cadence_table(config, raw_config, write_config):
+    assert config.models.gait_period_s == ((-0.5, 0.44), (0.0, 0.36), (0.8, 0.26))
+    raw_config["policy"]["gait_period_s"] = 0.4
+    assert load_config(write_config(raw_config)).models.gait_period_s == ((0.0, 0.4),)  # a constant C_T
+    raw_config["policy"]["gait_period_s"] = [[0.0, 0.36], [-0.5, 0.44]]
+    _expect_error(write_config, raw_config, "policy.gait_period_s", "increasing vx")
+    raw_config["policy"]["gait_period_s"] = [[0.0, 0.0]]
+    _expect_error(write_config, raw_config, "policy.gait_period_s", "period > 0", "[0.0, 0.0]")

@@ -8,6 +8,7 @@ import pytest
 from runtime.commands import limit_violation
 from runtime.inference import OnnxPolicy
 from runtime.policy import ObservationBuilder
+from runtime.walking.gait import GaitClock
 from training.distill import DistillSettings, distill, rollout, sample_commands
 
 torch = pytest.importorskip("torch")
@@ -30,7 +31,8 @@ def test_teacher_rollout_is_labelled_at_the_policy_rate(config):
     assert episode.obs.shape == (150, builder.size) and episode.teacher_actions.shape == (150, config.n_joints)
     # The observation is the runtime's: its clock runs at the policy rate and its last action is the executed one.
     clock = episode.obs[:, builder.slices["clock"]]
-    expected = 2 * np.pi * np.arange(150) / config.policy_hz / config.models.gait_period_s
+    gait_clock = GaitClock(config.models.gait_period_s, 1.0 / config.policy_hz)
+    expected = 2 * np.pi * np.array([gait_clock.tick(vx) for vx in episode.obs[:, builder.slices["command"].start]])
     np.testing.assert_allclose(clock, np.c_[np.sin(expected), np.cos(expected)], atol=1e-9)
     np.testing.assert_allclose(episode.obs[1:, builder.slices["last_action"]], episode.teacher_actions[:-1])
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from bruce_hw.config import load_config
-from runtime.walking.gait import gait_phase, min_jerk, swing_height
+from runtime.walking.gait import GaitClock, gait_period, gait_phase, min_jerk, swing_height
 from runtime.walking.leg_ik import SIDES, leg_fk, leg_geometry, leg_ik
 
 
@@ -57,11 +57,23 @@ def test_out_of_reach_targets_straighten_the_leg_toward_them(model):
 
 def test_gait_phase_alternates_steps_after_one_start_up_period():
     period = 0.4
-    assert gait_phase(0.1, period).starting
-    first = gait_phase(period + 0.01, period)
-    second = gait_phase(period + 0.5 * period + 0.01, period)
+    assert gait_phase(0.25, period).starting and gait_phase(0.25, period).start_share == 0.25
+    first = gait_phase(1.0 + 0.01 / period, period)
+    second = gait_phase(1.5 + 0.01 / period, period)
     assert (first.step, first.stance) == (0, 0) and (second.step, second.stance) == (1, 1)
+    assert first.t_in_step == pytest.approx(0.01) and first.step_time == pytest.approx(0.5 * period)
     assert first.t_in_step + first.t_remaining == pytest.approx(0.5 * period)
+
+
+def test_gait_clock_cadence_interpolates_the_table_and_holds_beyond_it():
+    cadence = ((-0.5, 0.44), (0.0, 0.36), (0.8, 0.26))
+    assert gait_period(cadence, 0.4) == pytest.approx(0.31)
+    assert gait_period(cadence, -1.0) == 0.44 and gait_period(cadence, 1.0) == 0.26
+    clock = GaitClock(cadence, 0.01)
+    ticks = [clock.tick(0.8) for _ in range(300)]
+    assert ticks[0] == 0.0 and clock.period == pytest.approx(0.26)  # 0.8 m/s reached after 1.6 s
+    assert ticks[-1] - ticks[-2] == pytest.approx(0.01 / 0.26)
+    assert clock.phase(ticks[-1]).step_time == pytest.approx(0.13)
 
 
 def test_swing_profiles_start_and_end_at_rest():

@@ -8,6 +8,7 @@ from bruce_hw.echo import EchoBackend
 from bruce_hw.mock import MujocoBackend
 from runtime.estimation import BaseEstimate, GroundTruthEstimator, euler_of, rotate_to_body
 from runtime.policy import ObservationBuilder
+from runtime.walking.gait import gait_period
 
 
 def test_observation_follows_table_one(config):
@@ -18,10 +19,9 @@ def test_observation_follows_table_one(config):
     state = backend.read()
     base = BaseEstimate(quat=np.array([1.0, 0.0, 0.0, 0.0]), linvel=np.array([0.1, 0.2, 0.3]),
                         angvel=np.array([-1.0, 0.0, 1.0]), euler=np.array([0.01, 0.02, 0.03]))
-    t = 0.125 * config.models.gait_period_s
-    obs = builder.build(t, np.array([0.4, 0.0, -0.5]), state, base, np.arange(10.0))
+    obs = builder.build(np.array([0.4, 0.0, -0.5]), state, base, np.arange(10.0))
     s = builder.slices
-    np.testing.assert_allclose(obs[s["clock"]], [math.sin(math.pi / 4), math.cos(math.pi / 4)])
+    np.testing.assert_allclose(obs[s["clock"]], [0.0, 1.0])  # the gait clock starts at phase 0
     np.testing.assert_array_equal(obs[s["command"]], [0.4, 0.0, -0.5])
     np.testing.assert_array_equal(obs[s["q"]], state.joints.q)
     np.testing.assert_array_equal(obs[s["qd"]], state.joints.qd)
@@ -43,7 +43,7 @@ def test_heading_error_integrates_the_command_is_bounded_and_ignores_where_north
         for k, wz in enumerate(yaw_rates):
             base = BaseEstimate(quat=np.array([1.0, 0.0, 0.0, 0.0]), linvel=np.zeros(3), angvel=np.zeros(3),
                                 euler=np.array([0.0, 0.0, yaw_offset + yaw_of_tick(k)]))
-            out.append(builder.build(k / config.policy_hz, np.array([0.0, 0.0, wz]), robot, base, np.zeros(10))
+            out.append(builder.build(np.array([0.0, 0.0, wz]), robot, base, np.zeros(10))
                        [builder.slices["euler"].start + 2])
         return out
 
@@ -78,3 +78,31 @@ def test_ground_truth_estimator_refuses_a_backend_without_truth(config):
     echo.configure()
     with pytest.raises(BackendError, match="echo backend: no ground truth"):
         GroundTruthEstimator(echo)
+
+
+def test_the_clock_input_runs_at_the_cadence_of_the_forward_command(config):
+    """The clock advances 1/C_T per second, C_T following the (rate-limited) forward command, and resets."""
+    state = MujocoBackend(config)
+    state.configure()
+    robot = state.read()
+    base = BaseEstimate(quat=np.array([1.0, 0.0, 0.0, 0.0]), linvel=np.zeros(3), angvel=np.zeros(3),
+                        euler=np.zeros(3))
+    builder = ObservationBuilder(config)
+    dt = 1.0 / config.policy_hz
+    period_0 = gait_period(config.models.gait_period_s, 0.0)
+
+    def phases(vx: float, ticks: int) -> np.ndarray:
+        clock = [builder.build(np.array([vx, 0.0, 0.0]), robot, base, np.zeros(10))[builder.slices["clock"]]
+                 for _ in range(ticks)]
+        return np.unwrap(np.arctan2(*np.array(clock).T))
+
+    standing = phases(0.0, 50)
+    np.testing.assert_allclose(np.diff(standing), 2 * math.pi * dt / period_0, rtol=1e-9)
+    builder.reset()
+    fast = phases(0.8, 400)  # 1.6 s to reach 0.8 m/s at the cadence's acceleration, then the fast period
+    period_fast = gait_period(config.models.gait_period_s, 0.8)
+    assert period_fast < period_0 < gait_period(config.models.gait_period_s, -0.5)
+    np.testing.assert_allclose(np.diff(fast)[-50:], 2 * math.pi * dt / period_fast, rtol=1e-9)
+    assert np.all(np.diff(np.diff(fast)) >= -1e-12)  # speeds up monotonically: no jump of the phase
+    builder.reset()
+    np.testing.assert_allclose(phases(0.0, 50), standing, atol=1e-12)

@@ -21,17 +21,15 @@ def walk(config, cmd, seconds, estimator=None, controller_kind="teacher", backen
 GRID = [(vx, 0.0, wz) for vx in (-0.5, -0.3, 0.0, 0.4, 0.8) for wz in (-0.5, 0.0, 0.5)] + \
     [(0.0, -0.2, 0.0), (0.0, 0.2, 0.0)]
 # Open items of the walking issue, measured with the committed teacher and policy (deterministic simulation):
-# - the teacher falls within ~5 s at vx 0.8 (it reaches ~0.5 m/s) and after ~6 s walking backwards at 0.5 m/s while
-#   turning left; everywhere else it tracks to <= 0.08 m/s and <= 0.03 rad/s;
-# - the distilled policy falls at vx 0.8 (as the teacher does) and walks everywhere else, including where the
-#   teacher falls walking backwards; it walks forward slower than commanded at 0.4 m/s (0.27-0.31 m/s: the
-#   teacher's velocity integral is a state it cannot observe), so those three points miss or barely make 0.1.
+# - the teacher walks and tracks the whole grid (<= 0.05 m/s and <= 0.01 rad/s; 0.8 m/s at its cadence's 0.26 s);
+# - the distilled policy walks the whole grid but walks forward slower than commanded: 0.64-0.70 m/s at 0.8 and
+#   0.27 m/s at (0.4, 0, 0.5) (the teacher's velocity integral is a state it cannot observe), so four points miss.
 # Falls and tracking are checked separately: a run that must not fall fails the test if it does, even where its
 # tracking is an open item. Marked, not hidden: an open item that starts passing shows as XPASS.
-TEACHER_FALLS = {(0.8, 0.0, -0.5), (0.8, 0.0, 0.0), (0.8, 0.0, 0.5), (-0.5, 0.0, 0.5)}
+TEACHER_FALLS: set = set()
 TEACHER_TRACKING_GAPS: set = set()
-POLICY_FALLS = {(0.8, 0.0, -0.5), (0.8, 0.0, 0.0), (0.8, 0.0, 0.5)}
-POLICY_TRACKING_GAPS = {(0.4, 0.0, -0.5), (0.4, 0.0, 0.0), (0.4, 0.0, 0.5)}
+POLICY_FALLS: set = set()
+POLICY_TRACKING_GAPS = {(0.4, 0.0, 0.5), (0.8, 0.0, -0.5), (0.8, 0.0, 0.0), (0.8, 0.0, 0.5)}
 
 
 def grid_cases(falls, who):

@@ -180,7 +180,7 @@ def rollout(config: RobotConfig, settings: DistillSettings, rng: np.random.Gener
             base = estimator.estimate()
             seen = base if observer is None else observer.estimate()
             command = commands.at(t)
-            obs = builder.build(tick // decimation / config.policy_hz, command, robot, seen, last_action)
+            obs = builder.build(command, robot, seen, last_action)
             label = teacher(robot, base, command)
             obs_log.append(obs)
             label_log.append(label)

@@ -1,14 +1,25 @@
-"""The gait's timing and the swing foot's path, as pure functions of time.
+"""The gait's timing and the swing foot's path.
 
-The gait is locked to the policy's clock input (paper Table I: sin/cos of 2 pi t / C_T): a period C_T holds
-two steps of C_T / 2, right foot in stance first, after one start-up period in double support. A student
-policy sees only that clock, so the teacher's phase must be a function of t alone.
+The gait is locked to the policy's clock input (paper Table I: sin/cos of the gait phase): a period C_T holds
+two steps of C_T / 2, right foot in stance first, after one start-up period in double support. A student policy
+sees only that clock and the command, so the teacher's phase must be a function of the command history alone,
+which `GaitClock` is: both the teacher and the policy's observation builder run one.
+
+Step-timing adaptation, at the rate a clock input allows: C_T follows the commanded forward speed
+(`policy.gait_period_s` as a table of (vx, C_T) points). BRUCE walks fast forward only with short steps (at 0.36 s
+it falls at about 0.5 m/s, at 0.26 s it walks 0.75 m/s on a 0.8 command) and fast backward only with long ones
+(0.26 s falls at -0.5 m/s within 3 s, 0.44 s walks it, turning too). The clock integrates 1 / C_T, so a change of
+cadence never jumps the phase, and C_T moves with a rate-limited copy of the command, as the teacher's speed does.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
+import numpy as np
+
+CADENCE_ACCELERATION = 0.5  # m/s^2: the forward-speed command the cadence follows changes at most this fast
 
 
 @dataclass(frozen=True, slots=True)
@@ -17,16 +28,52 @@ class GaitPhase:
     step: int            # index of the current step (0 = first step); -1 while starting
     stance: int          # leg in stance: 0 right, 1 left
     t_in_step: float     # s since the step began
-    t_remaining: float   # s until the step ends
+    t_remaining: float   # s until the step ends, at the current cadence
+    step_time: float     # s, C_T / 2 at the current cadence
+    start_share: float   # share of the start-up period done (1 once stepping)
 
 
-def gait_phase(t: float, period: float) -> GaitPhase:
+def gait_phase(cycles: float, period: float) -> GaitPhase:
+    """The gait at `cycles` gait periods since the start, stepping at period C_T = `period` (s)."""
     step_time = 0.5 * period
-    if t < period:
-        return GaitPhase(True, -1, 0, t - period + step_time, period - t)
-    k = int((t - period) // step_time)
-    t_in = t - period - k * step_time
-    return GaitPhase(False, k, k % 2, t_in, step_time - t_in)
+    if cycles < 1.0:
+        return GaitPhase(True, -1, 0, (cycles - 0.5) * period, (1.0 - cycles) * period, step_time, cycles)
+    steps = 2.0 * (cycles - 1.0)
+    k = int(steps)
+    share = steps - k
+    return GaitPhase(False, k, k % 2, share * step_time, (1.0 - share) * step_time, step_time, 1.0)
+
+
+def gait_period(cadence: tuple[tuple[float, float], ...], vx: float) -> float:
+    """C_T (s) at forward speed vx: linear between the table's (vx, C_T) points, constant beyond them."""
+    speeds, periods = zip(*cadence, strict=True)
+    return float(np.interp(vx, speeds, periods))
+
+
+class GaitClock:
+    """The gait phase in periods, advanced once per policy tick at the cadence of the forward-speed command."""
+
+    def __init__(self, cadence: tuple[tuple[float, float], ...], dt: float):
+        self.cadence = cadence
+        self.dt = dt
+        self.reset()
+
+    def reset(self) -> None:
+        self.cycles = 0.0
+        self.vx = 0.0
+        self.period = gait_period(self.cadence, 0.0)
+
+    def tick(self, vx_command: float) -> float:
+        """This tick's phase (periods since the start), then advance one policy tick."""
+        cycles = self.cycles
+        limit = CADENCE_ACCELERATION * self.dt
+        self.vx += min(limit, max(-limit, vx_command - self.vx))
+        self.period = gait_period(self.cadence, self.vx)
+        self.cycles += self.dt / self.period
+        return cycles
+
+    def phase(self, cycles: float) -> GaitPhase:
+        return gait_phase(cycles, self.period)
 
 
 def min_jerk(s: float) -> float:

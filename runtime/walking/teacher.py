@@ -6,14 +6,16 @@ It has the nominal controller's interface, a_t = teacher(state, base, command) a
 Each policy tick:
 1. Kinematics from the robot's own model: the joint angles and the estimated base orientation give the
    ankles and the centre of mass relative to the base, in world-aligned axes.
-2. Gait timing is locked to the policy clock (`gait.gait_phase`): one start-up period shifting the weight onto
-   the right foot, then alternating steps of C_T / 2.
+2. Gait timing is locked to the policy clock (`gait.GaitClock`): one start-up period shifting the weight onto
+   the right foot, then alternating steps of C_T / 2, with C_T following the commanded forward speed (short
+   steps to walk fast forward, long ones to walk fast backward).
 3. Footstep: the divergent component of motion (DCM) xi = c + c'/omega of the linear inverted pendulum is
    predicted to the end of the step, xi_T = p + (xi - p) e^(omega t_remaining) around the stance foot's
    centre p, and the swing foot lands at xi_T - b, with b the DCM offset of a periodic gait at the
-   commanded velocity (Khadiv et al., TRO 2020), with a fixed step time (step-timing adaptation is not built
-   yet). BRUCE's line feet have no ankle roll, so this is the only lateral balance there is; the stance ankle
-   adds a little sagittal balance by moving the centre of pressure within the foot.
+   commanded velocity (Khadiv et al., TRO 2020), at the clock's step time (the cadence is the step-timing
+   adaptation; within a step the time is fixed, so a student can follow it from the clock). BRUCE's line feet
+   have no ankle roll, so this is the only lateral balance there is; the stance ankle adds a little sagittal
+   balance by moving the centre of pressure within the foot.
 4. Swing: minimum-jerk horizontal motion from lift-off to the landing point (re-planned every tick until
    the last part of the swing), a height bump, the sole kept level in the world.
 5. Stance: the leg's IK target holds the base at the nominal height *upright*, so the joint PD corrects the
@@ -35,7 +37,7 @@ from bruce_hw.config import RobotConfig
 from bruce_hw.types import RobotState
 from runtime.estimation import BaseEstimate
 from runtime.heading import HeadingReference
-from runtime.walking.gait import gait_phase, lipm_omega, min_jerk, swing_height
+from runtime.walking.gait import GaitClock, lipm_omega, min_jerk, swing_height
 from runtime.walking.leg_ik import SIDES, leg_geometry, leg_ik
 
 
@@ -61,7 +63,7 @@ class TeacherParams:
     heading_correction_max: float = 0.02  # rad of stance hip yaw per tick: more twists the foot past its friction
     command_acceleration: tuple[float, float, float] = (0.5, 0.5, 1.0)  # m/s^2, m/s^2, rad/s^2
     velocity_integral_gain: float = 0.3  # 1/s, on the error of the base's velocity in the heading frame
-    velocity_bias_max: float = 0.3   # m/s
+    velocity_bias_max: float = 0.5   # m/s
     # Extra stiffness, as a multiple of Eq. 8's Kp, added through a_t (a sampled 100 Hz loop around the 1 kHz PD):
     stance_stiffness_boost: float = 0.471  # stance hips and knee
     swing_stiffness_boost: float = 0.25  # swing hips and knee
@@ -75,8 +77,8 @@ class WalkingTeacher:
         self.config = config
         self.params = p = params or TeacherParams()
         self.dt = 1.0 / config.policy_hz
-        self.period = config.models.gait_period_s
-        self.step_time = 0.5 * self.period
+        # The gait's clock, the policy observation's (runtime.policy): the same phase for teacher and student.
+        self.clock = GaitClock(config.models.gait_period_s, self.dt)
         self.model = mujoco.MjModel.from_xml_path(str(config.mjcf))
         self.kin = mujoco.MjData(self.model)
         self.kin.qpos[0:3] = 0.0  # positions come out relative to the base origin
@@ -91,7 +93,6 @@ class WalkingTeacher:
         self.mass = float(self.model.body_subtreemass[self.base])
         self.mg = self.mass * 9.81
         self.omega = lipm_omega(p.com_height)
-        self.growth = math.exp(self.omega * self.step_time)  # e^(omega T)
         self.kp, self.kd = config.eq8.kp, config.eq8.kd
         self.jacp = np.zeros((3, self.model.nv))
         self.jacr = np.zeros((3, self.model.nv))
@@ -106,7 +107,7 @@ class WalkingTeacher:
 
     # -- state -------------------------------------------------------------------------------------------
     def reset(self, q_measured: np.ndarray) -> None:
-        self.tick = 0
+        self.clock.reset()
         self.step_index = -2
         self.liftoff = np.zeros(3)       # swing ankle at lift-off, relative to the stance ankle (world axes)
         self.swing_yaw0 = 0.0
@@ -155,8 +156,9 @@ class WalkingTeacher:
     def __call__(self, state: RobotState, base: BaseEstimate, command: np.ndarray) -> np.ndarray:
         p = self.params
         q = state.joints.q
-        t = self.tick * self.dt
-        self.tick += 1
+        phase = self.clock.phase(self.clock.tick(float(command[0])))
+        self.step_time = phase.step_time
+        self.growth = math.exp(self.omega * self.step_time)  # e^(omega T)
         self._kinematics(q, base.quat)
         kin = self.kin
         rot = kin.xmat[self.base].reshape(3, 3)  # base -> world-aligned axes
@@ -178,14 +180,13 @@ class WalkingTeacher:
         # Velocity integral: model errors (pendulum vs multibody, foot, PD sag) bias the mean speed, so the
         # footstep plan aims at the command plus the integrated error of the measured base velocity.
         v_heading = (cy * com_velocity[0] + sy * com_velocity[1], -sy * com_velocity[0] + cy * com_velocity[1])
-        if t >= self.period:
+        if not phase.starting:
             for i, (cmd, meas) in enumerate(((vx, v_heading[0]), (vy, v_heading[1]))):
                 self.velocity_bias[i] = min(p.velocity_bias_max, max(-p.velocity_bias_max, self.velocity_bias[i]
                                             + p.velocity_integral_gain * self.dt * (cmd - meas)))
         vx += self.velocity_bias[0]
         vy += self.velocity_bias[1]
 
-        phase = gait_phase(t, self.period)
         # Integrated from the command as given (the policy's observation has no rate limiter); the schedules ramp
         # the yaw rate slower than the limiter above, so the two agree.
         heading = self.heading_reference.update(yaw, float(command[2]))
@@ -202,7 +203,7 @@ class WalkingTeacher:
             if self.start_offset is None:
                 self.start_offset = float(offset @ side)
             target_lateral = -(0.5 * p.step_width - inner) * p.start_shift
-            blend = min_jerk(t / (self.period - 2 * self.dt))
+            blend = min_jerk(phase.start_share / (1.0 - self.dt / phase.step_time))
             lateral = self.start_offset + blend * (target_lateral - self.start_offset)
             shift = (offset @ side - lateral) * side
             right_share = min(1.0, max(0.0, 0.5 - (offset @ side) / p.step_width))
