@@ -37,7 +37,7 @@ from bruce_hw.config import RobotConfig
 from bruce_hw.types import RobotState
 from runtime.estimation import BaseEstimate
 from runtime.heading import HeadingReference
-from runtime.walking.gait import GaitClock, lipm_omega, min_jerk, swing_height
+from runtime.walking.gait import GaitClock, GaitPhase, lipm_omega, min_jerk, swing_height
 from runtime.walking.leg_ik import SIDES, leg_geometry, leg_ik
 
 
@@ -157,8 +157,8 @@ class WalkingTeacher:
         p = self.params
         q = state.joints.q
         phase = self.clock.phase(self.clock.tick(float(command[0])))
-        self.step_time = phase.step_time
-        self.growth = math.exp(self.omega * self.step_time)  # e^(omega T)
+        step_time = phase.step_time
+        growth = math.exp(self.omega * step_time)  # e^(omega T)
         self._kinematics(q, base.quat)
         kin = self.kin
         rot = kin.xmat[self.base].reshape(3, 3)  # base -> world-aligned axes
@@ -199,7 +199,7 @@ class WalkingTeacher:
             # Both feet down: move the CoM toward the right foot, the first stance foot, so that the DCM is
             # where a periodic gait has it when the left foot lifts.
             offset = com - 0.5 * (ankles[0] + ankles[1])  # from the middle of the feet
-            inner = p.step_width / (1.0 + self.growth)
+            inner = p.step_width / (1.0 + growth)
             if self.start_offset is None:
                 self.start_offset = float(offset @ side)
             target_lateral = -(0.5 * p.step_width - inner) * p.start_shift
@@ -224,7 +224,7 @@ class WalkingTeacher:
                 self.step_index = phase.step
                 self.liftoff = ankles[swing] - ankles[stance]
                 self.swing_yaw0 = float(q[self.leg_joints[swing][0]])
-            tau_s = phase.t_in_step / self.step_time
+            tau_s = phase.t_in_step / step_time
             # Stance: hold the base upright at the nominal height above the stance ankle; turn at wz.
             target = ankles[stance].copy()
             target[2] = -p.standing_height
@@ -241,22 +241,22 @@ class WalkingTeacher:
             centre = ankles[stance] + p.foot_centre * forward
             dcm = com + com_velocity / self.omega
             xi = (dcm - centre) @ forward
-            xi_nominal = vx * self.step_time / (self.growth - 1.0) * math.exp(self.omega * phase.t_in_step)
+            xi_nominal = vx * step_time / (growth - 1.0) * math.exp(self.omega * phase.t_in_step)
             cop = min(p.cop_front, max(-p.cop_back, p.cop_gain * (xi - xi_nominal)))
             ankle_torque[self.leg_joints[stance][4]] = -self.mg * (cop + p.foot_centre)
             # Footstep from the DCM.
             if tau_s <= p.replan_until:
-                self.landing = self._landing(ankles[stance], centre, dcm, heading, phase.t_remaining, swing,
+                self.landing = self._landing(ankles[stance], centre, dcm, heading, phase, growth, swing,
                                              vx, vy, wz)
             # Swing trajectory relative to the stance ankle, then into the base frame at the measured attitude.
             # Land turned by half a step's turn ahead of the heading, so the stance foot turns symmetrically.
-            swing_yaw_end = math.remainder(heading + wz * (phase.t_remaining + 0.5 * self.step_time) - yaw,
+            swing_yaw_end = math.remainder(heading + wz * (phase.t_remaining + 0.5 * step_time) - yaw,
                                            math.tau)
             legs = self.leg_joints[swing]
 
             def swing_joints(dt: float) -> np.ndarray:
                 """Swing-leg joint targets dt from now: the stance ankle moves by -v dt relative to the base."""
-                s = tau_s + dt / self.step_time
+                s = tau_s + dt / step_time
                 yaw_blend = min_jerk(s)
                 target = ankles[stance] - com_velocity * dt + self._swing_point(s)
                 return np.array(self._swing_ik(swing, rot, target, yaw,
@@ -280,14 +280,14 @@ class WalkingTeacher:
                                                * state.joints.qd[torque_source]) / self.kp[torque_source]
         return a
 
-    def _landing(self, stance_ankle, centre, dcm, yaw, t_remaining, swing, vx, vy, wz) -> np.ndarray:
+    def _landing(self, stance_ankle, centre, dcm, yaw, phase: GaitPhase, e: float, swing, vx, vy, wz) -> np.ndarray:
         """Swing ankle landing point relative to the stance ankle (world axes, z = 0: flat ground), from the DCM
-        and the stance foot's centre (both relative to the base, world axes)."""
+        and the stance foot's centre (both relative to the base, world axes), with e = e^(omega T) of the step."""
         p = self.params
+        t_remaining = phase.t_remaining
         xi_end = centre[:2] + (dcm[:2] - centre[:2]) * math.exp(self.omega * t_remaining)
-        e = self.growth
         sign = 1.0 if swing == 1 else -1.0  # the left foot lands on the left
-        T = self.step_time
+        T = phase.step_time
         bx = vx * T / (e - 1.0)
         by = -sign * p.step_width / (1.0 + e) + vy * T / (e - 1.0)
         heading = yaw + wz * t_remaining
