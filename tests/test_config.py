@@ -158,7 +158,7 @@ def test_pinn_lookahead_is_optional_and_checked(config, raw_config, write_config
 
 
 def test_gait_period_is_a_number_or_a_cadence_table(config, raw_config, write_config):
-    assert config.models.gait_period_s == ((-0.5, 0.44), (0.0, 0.36), (0.8, 0.26))
+    assert config.models.gait_period_s == ((-0.5, 0.40), (0.0, 0.36), (0.8, 0.26))
     raw_config["policy"]["gait_period_s"] = 0.4
     assert load_config(write_config(raw_config)).models.gait_period_s == ((0.0, 0.4),)  # a constant C_T
     raw_config["policy"]["gait_period_s"] = [[0.0, 0.36], [-0.5, 0.44]]

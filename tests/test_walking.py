@@ -21,15 +21,16 @@ def walk(config, cmd, seconds, estimator=None, controller_kind="teacher", backen
 GRID = [(vx, 0.0, wz) for vx in (-0.5, -0.3, 0.0, 0.4, 0.8) for wz in (-0.5, 0.0, 0.5)] + \
     [(0.0, -0.2, 0.0), (0.0, 0.2, 0.0)]
 # Open items of the walking issue, measured with the committed teacher and policy (deterministic simulation):
-# - the teacher walks and tracks the whole grid (<= 0.05 m/s and <= 0.01 rad/s; 0.8 m/s at its cadence's 0.26 s);
-# - the distilled policy walks the whole grid but walks forward slower than commanded: 0.64-0.70 m/s at 0.8 and
-#   0.27 m/s at (0.4, 0, 0.5) (the teacher's velocity integral is a state it cannot observe), so four points miss.
+# - the teacher walks and tracks the whole grid (<= 0.017 m/s and <= 0.012 rad/s);
+# - the distilled policy tracks every point it walks (<= 0.055 m/s, <= 0.068 m/s lateral, <= 0.017 rad/s) but falls
+#   walking backwards at 0.5 m/s while turning left (after 6 s): backward walking is the teacher's least robust
+#   regime (with 0.02 rad of action noise it falls there in a third of 15 s runs), so imitation errors add up.
 # Falls and tracking are checked separately: a run that must not fall fails the test if it does, even where its
 # tracking is an open item. Marked, not hidden: an open item that starts passing shows as XPASS.
 TEACHER_FALLS: set = set()
 TEACHER_TRACKING_GAPS: set = set()
-POLICY_FALLS: set = set()
-POLICY_TRACKING_GAPS = {(0.4, 0.0, 0.5), (0.8, 0.0, -0.5), (0.8, 0.0, 0.0), (0.8, 0.0, 0.5)}
+POLICY_FALLS = {(-0.5, 0.0, 0.5)}
+POLICY_TRACKING_GAPS: set = set()
 
 
 def grid_cases(falls, who):

@@ -37,7 +37,7 @@ from bruce_hw.config import RobotConfig
 from bruce_hw.types import RobotState
 from runtime.estimation import BaseEstimate
 from runtime.heading import HeadingReference
-from runtime.walking.gait import GaitClock, GaitPhase, lipm_omega, min_jerk, swing_height
+from runtime.walking.gait import GaitClock, GaitPhase, interpolate, lipm_omega, min_jerk, swing_height
 from runtime.walking.leg_ik import SIDES, leg_geometry, leg_ik
 
 
@@ -62,8 +62,14 @@ class TeacherParams:
     cop_back: float = 0.008          # m behind it at most (the heel is 0.0425 behind)
     heading_correction_max: float = 0.02  # rad of stance hip yaw per tick: more twists the foot past its friction
     command_acceleration: tuple[float, float, float] = (0.5, 0.5, 1.0)  # m/s^2, m/s^2, rad/s^2
+    # Forward-speed offset that the footstep plan adds to the command, as (vx, offset) points, linear between them:
+    # the steady state of the velocity integral below, measured over the acceptance grid. Fed forward, it leaves
+    # the integral a small correction, so the footsteps are nearly a function of what a student observes.
+    speed_feedforward: tuple[tuple[float, float], ...] = ((-0.5, -0.06), (-0.3, 0.006), (0.0, 0.1), (0.4, 0.3),
+                                                          (0.8, 0.42))
+    lateral_feedforward: float = 0.55  # lateral-speed offset per m/s of lateral command, likewise
     velocity_integral_gain: float = 0.3  # 1/s, on the error of the base's velocity in the heading frame
-    velocity_bias_max: float = 0.5   # m/s
+    velocity_bias_max: float = 0.2   # m/s: the integral corrects the feed-forward, it does not replace it
     # Extra stiffness, as a multiple of Eq. 8's Kp, added through a_t (a sampled 100 Hz loop around the 1 kHz PD):
     stance_stiffness_boost: float = 0.471  # stance hips and knee
     swing_stiffness_boost: float = 0.25  # swing hips and knee
@@ -184,8 +190,8 @@ class WalkingTeacher:
             for i, (cmd, meas) in enumerate(((vx, v_heading[0]), (vy, v_heading[1]))):
                 self.velocity_bias[i] = min(p.velocity_bias_max, max(-p.velocity_bias_max, self.velocity_bias[i]
                                             + p.velocity_integral_gain * self.dt * (cmd - meas)))
-        vx += self.velocity_bias[0]
-        vy += self.velocity_bias[1]
+        vx += self.velocity_bias[0] + interpolate(p.speed_feedforward, vx)
+        vy += self.velocity_bias[1] + p.lateral_feedforward * vy
 
         # Integrated from the command as given (the policy's observation has no rate limiter); the schedules ramp
         # the yaw rate slower than the limiter above, so the two agree.
