@@ -86,18 +86,26 @@ def test_samples_are_finite_within_torque_limits_and_walk(config, short_walk):
 
 def test_tau_is_the_torque_the_simulator_applied(config, short_walk):
     data, mocks = short_walk
-    assert len(mocks) == len(data.metadata["episodes"]) == 1  # no fall in these three seconds
-    applied = np.array(mocks[0].applied)
+    episodes = data.metadata["episodes"]
+    assert len(mocks) == len(episodes)  # one fresh mock per episode
     # run_session reads once before the loop; tick k is read k + 1, and its torque acts during read k + 2.
     warmup = round(config.safety.soft_start_s * config.loop_hz)
-    # Equal up to rounding: the mock's per-actuator saturation maps the torque through the coupling and back.
-    np.testing.assert_allclose(data.tau[:-1], applied[warmup + 2:warmup + len(data) + 1], rtol=0, atol=1e-12)
+    for mock, episode in zip(mocks, episodes, strict=True):
+        applied = np.array(mock.applied)
+        tau = data.tau[episode["first_index"]:episode["first_index"] + episode["samples"]]
+        # Equal up to rounding: the mock's per-actuator saturation maps the torque through the coupling and back.
+        np.testing.assert_allclose(tau[:-1], applied[warmup + 2:warmup + len(tau) + 1], rtol=0, atol=1e-12)
 
 
 def test_commands_are_sampled_from_the_box_and_clipped(short_walk):
     data, _ = short_walk
     segments = data.metadata["segments"]
-    assert [s["first_index"] for s in segments] == [0, 1000, 2000]
+    starts = {e["episode"]: e["first_index"] for e in data.metadata["episodes"]}
+    # Every second within each episode (a fall starts a new episode, and its commands anew).
+    assert [s["t_s"] for s in segments if s["episode"] == 0][:2] == [0.0, 1.0]
+    for segment in segments:
+        assert segment["first_index"] == starts[segment["episode"]] + round(segment["t_s"] * 1000)
+        assert segment["t_s"] == round(segment["t_s"])
     for segment in segments:
         for axis, sampled, cmd in zip(COMMAND_AXES, segment["sampled"], segment["cmd"], strict=True):
             assert SAMPLE_BOX[axis][0] <= sampled <= SAMPLE_BOX[axis][1]
