@@ -106,7 +106,6 @@ def test_commands_are_sampled_from_the_box_and_clipped(short_walk):
     for segment in segments:
         assert segment["first_index"] == starts[segment["episode"]] + round(segment["t_s"] * 1000)
         assert segment["t_s"] == round(segment["t_s"])
-    for segment in segments:
         for axis, sampled, cmd in zip(COMMAND_AXES, segment["sampled"], segment["cmd"], strict=True):
             assert SAMPLE_BOX[axis][0] <= sampled <= SAMPLE_BOX[axis][1]
             assert cmd == min(max(sampled, POLICY_CLIP[axis][0]), POLICY_CLIP[axis][1])
