@@ -7,7 +7,7 @@ its graph):
 | slice            | dims | what                                                   |
 |------------------|------|--------------------------------------------------------|
 | clock            | 2    | sin, cos of the gait phase (2 pi t / C_T at a constant C_T; `GaitClock`) |
-| command          | 3    | commanded vx, vy (m/s, heading frame) and yaw rate (rad/s)       |
+| command          | 3    | commanded vx, vy (m/s, heading frame), yaw rate (rad/s), rate-limited (`GaitClock`) |
 | q                | n    | joint positions (rad)                                  |
 | qd               | n    | joint velocities (rad/s)                               |
 | base_linvel      | 3    | base linear velocity, base frame (m/s)                 |
@@ -58,7 +58,8 @@ class ObservationBuilder:
 
     def build(self, command: np.ndarray, state: RobotState, base: BaseEstimate,
               last_action: np.ndarray) -> np.ndarray:
-        phase = 2.0 * math.pi * self.clock.tick(float(command[0]))
+        phase = 2.0 * math.pi * self.clock.tick(command)
+        command = self.clock.command  # the rate-limited command, the one the gait follows
         s = self.slices
         obs = np.empty(self.size)
         obs[s["clock"]] = (math.sin(phase), math.cos(phase))

@@ -32,7 +32,8 @@ def test_teacher_rollout_is_labelled_at_the_policy_rate(config):
     # The observation is the runtime's: its clock runs at the policy rate and its last action is the executed one.
     clock = episode.obs[:, builder.slices["clock"]]
     gait_clock = GaitClock(config.models.gait_period_s, 1.0 / config.policy_hz)
-    expected = 2 * np.pi * np.array([gait_clock.tick(vx) for vx in episode.obs[:, builder.slices["command"].start]])
+    # (its command is the clock's own: rate-limited, so ticking a fresh clock with it reproduces it)
+    expected = 2 * np.pi * np.array([gait_clock.tick(c) for c in episode.obs[:, builder.slices["command"]]])
     np.testing.assert_allclose(clock, np.c_[np.sin(expected), np.cos(expected)], atol=1e-9)
     np.testing.assert_allclose(episode.obs[1:, builder.slices["last_action"]], episode.teacher_actions[:-1])
 

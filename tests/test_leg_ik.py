@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from bruce_hw.config import load_config
-from runtime.walking.gait import GaitClock, gait_period, gait_phase, min_jerk, swing_height
+from runtime.walking.gait import COMMAND_ACCELERATION, GaitClock, gait_period, gait_phase, min_jerk, swing_height
 from runtime.walking.leg_ik import SIDES, leg_fk, leg_geometry, leg_ik
 
 
@@ -70,7 +70,12 @@ def test_gait_clock_cadence_interpolates_the_table_and_holds_beyond_it():
     assert gait_period(cadence, 0.4) == pytest.approx(0.31)
     assert gait_period(cadence, -1.0) == 0.44 and gait_period(cadence, 1.0) == 0.26
     clock = GaitClock(cadence, 0.01)
-    ticks = [clock.tick(0.8) for _ in range(300)]
+    command = np.array([0.8, -0.2, 0.5])
+    ticks = [clock.tick(command)]
+    # the followed command moves toward the command at the bounded acceleration (policy ticks of 0.01 s)...
+    np.testing.assert_allclose(clock.command, 0.01 * COMMAND_ACCELERATION * np.sign(command), rtol=1e-12)
+    ticks += [clock.tick(command) for _ in range(299)]
+    np.testing.assert_allclose(clock.command, command)  # ... and holds it once reached
     assert ticks[0] == 0.0 and clock.period == pytest.approx(0.26)  # 0.8 m/s reached after 1.6 s
     assert ticks[-1] - ticks[-2] == pytest.approx(0.01 / 0.26)
     assert clock.phase(ticks[-1]).step_time == pytest.approx(0.13)

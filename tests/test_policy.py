@@ -8,7 +8,7 @@ from bruce_hw.echo import EchoBackend
 from bruce_hw.mock import MujocoBackend
 from runtime.estimation import BaseEstimate, GroundTruthEstimator, euler_of, rotate_to_body
 from runtime.policy import ObservationBuilder
-from runtime.walking.gait import gait_period
+from runtime.walking.gait import COMMAND_ACCELERATION, gait_period
 
 
 def test_observation_follows_table_one(config):
@@ -22,14 +22,16 @@ def test_observation_follows_table_one(config):
     obs = builder.build(np.array([0.4, 0.0, -0.5]), state, base, np.arange(10.0))
     s = builder.slices
     np.testing.assert_allclose(obs[s["clock"]], [0.0, 1.0])  # the gait clock starts at phase 0
-    np.testing.assert_array_equal(obs[s["command"]], [0.4, 0.0, -0.5])
+    # the command the gait follows: one policy tick of the bounded acceleration toward the command
+    followed = COMMAND_ACCELERATION / config.policy_hz * [1.0, 0.0, -1.0]
+    np.testing.assert_allclose(obs[s["command"]], followed, rtol=1e-12)
     np.testing.assert_array_equal(obs[s["q"]], state.joints.q)
     np.testing.assert_array_equal(obs[s["qd"]], state.joints.qd)
     np.testing.assert_array_equal(obs[s["base_linvel"]], base.linvel)
     np.testing.assert_array_equal(obs[s["base_angvel"]], base.angvel)
     # roll and pitch as estimated; then the yaw's error to the commanded heading: the reference starts at the
-    # measured yaw and has turned by -0.5 rad/s for one policy tick
-    np.testing.assert_allclose(obs[s["euler"]], [0.01, 0.02, 0.5 / config.policy_hz], rtol=1e-12)
+    # measured yaw and has turned at the followed yaw rate for one policy tick
+    np.testing.assert_allclose(obs[s["euler"]], [0.01, 0.02, -followed[2] / config.policy_hz], rtol=1e-12)
     np.testing.assert_array_equal(obs[s["last_action"]], np.arange(10.0))
 
 
@@ -48,15 +50,17 @@ def test_heading_error_integrates_the_command_is_bounded_and_ignores_where_north
         return out
 
     dt = 1.0 / config.policy_hz
+    rates = np.minimum(0.4, COMMAND_ACCELERATION[2] * dt * np.arange(1, 201))  # the followed yaw rate per tick
+    turned = dt * np.cumsum(rates)  # the reference's turn after each tick
     standing = errors(0.0, [0.4] * 200, lambda k: 0.0)  # commanded to turn, the base does not
-    np.testing.assert_allclose(standing[:10], -0.4 * dt * np.arange(1, 11), rtol=1e-9)
+    np.testing.assert_allclose(standing[:30], -turned[:30], rtol=1e-9)
     assert min(standing) == pytest.approx(-0.3)  # the reference leads the measured yaw by 0.3 rad at most
-    # turning as commanded: a constant error of one tick's turn (the reference is where the yaw should be by the
-    # next tick)
-    following = errors(0.0, [0.4] * 200, lambda k: 0.4 * dt * k)
-    np.testing.assert_allclose(following, -0.4 * dt, rtol=1e-9)
+    # turning as commanded: an error of one tick's turn (the reference is where the yaw should be by the next tick)
+    following = errors(0.0, [0.4] * 200, lambda k: turned[k - 1] if k else 0.0)
+    np.testing.assert_allclose(following, -rates * dt, rtol=1e-9)
     np.testing.assert_allclose(errors(2.0, [0.4] * 200, lambda k: 0.0), standing, atol=1e-12)  # any start heading
-    np.testing.assert_allclose(errors(3.0, [0.4] * 200, lambda k: 0.4 * dt * k), -0.4 * dt, rtol=1e-6)
+    np.testing.assert_allclose(errors(3.0, [0.4] * 200, lambda k: turned[k - 1] if k else 0.0), -rates * dt,
+                               rtol=1e-6)
 
 
 def test_ground_truth_estimate_is_in_the_base_frame(config):

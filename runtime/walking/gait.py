@@ -9,8 +9,13 @@ Step-timing adaptation, at the rate a clock input allows: C_T follows the comman
 (`policy.gait_period_s` as a table of (vx, C_T) points). BRUCE walks fast forward only with short steps (at 0.36 s
 it falls at about 0.5 m/s, at 0.26 s it walks 0.75 m/s on a 0.8 command) and fast backward only with long ones
 (0.26 s falls at -0.5 m/s within 3 s; 0.40 s walks it, turning too, and stands 0.02-0.03 rad of action noise a
-little better than 0.44 s). The clock integrates 1 / C_T, so a change of cadence never jumps the phase, and C_T
-moves with a rate-limited copy of the command, as the teacher's speed does.
+little better than 0.44 s). The clock integrates 1 / C_T, so a change of cadence never jumps the phase.
+
+The clock also keeps the command the gait follows: the velocity command rate-limited to `COMMAND_ACCELERATION`,
+because a step change would ask for a step change of the footstep offsets, which the pendulum cannot follow within
+one step. C_T moves with it, the teacher plans its footsteps and heading with it, and the policy observes it, so
+the command a student sees is the one its teacher acted on (with the limiter hidden in the teacher, a student saw
+a command up to 0.5 m/s ahead of the teacher's for a second after each change).
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-CADENCE_ACCELERATION = 0.5  # m/s^2: the forward-speed command the cadence follows changes at most this fast
+COMMAND_ACCELERATION = np.array([0.5, 0.5, 1.0])  # m/s^2, m/s^2, rad/s^2: (vx, vy, yaw rate) change at most this fast
 
 
 @dataclass(frozen=True, slots=True)
@@ -57,7 +62,7 @@ def gait_period(cadence: tuple[tuple[float, float], ...], vx: float) -> float:
 
 
 class GaitClock:
-    """The gait phase in periods, advanced once per policy tick at the cadence of the forward-speed command."""
+    """The gait phase in periods and the command the gait follows, advanced once per policy tick."""
 
     def __init__(self, cadence: tuple[tuple[float, float], ...], dt: float):
         self.cadence = cadence
@@ -66,15 +71,16 @@ class GaitClock:
 
     def reset(self) -> None:
         self.cycles = 0.0
-        self.vx = 0.0
+        self.command = np.zeros(3)  # (vx, vy, yaw rate), rate-limited
         self.period = gait_period(self.cadence, 0.0)
 
-    def tick(self, vx_command: float) -> float:
-        """This tick's phase (periods since the start), then advance one policy tick."""
+    def tick(self, command: np.ndarray) -> float:
+        """This tick's phase (periods since the start), then advance one policy tick: the followed command moves
+        toward `command` (vx, vy, yaw rate) at the bounded acceleration, and the cadence with it."""
         cycles = self.cycles
-        limit = CADENCE_ACCELERATION * self.dt
-        self.vx += min(limit, max(-limit, vx_command - self.vx))
-        self.period = gait_period(self.cadence, self.vx)
+        limit = COMMAND_ACCELERATION * self.dt
+        self.command = self.command + np.clip(np.asarray(command, dtype=float) - self.command, -limit, limit)
+        self.period = gait_period(self.cadence, float(self.command[0]))
         self.cycles += self.dt / self.period
         return cycles
 
