@@ -38,6 +38,12 @@ class SerialBus:
     port: str
     baud: int
     ids: tuple[int, ...] = ()
+    # Motor-side watchdog: the devices stop (BEAR: damping; Dynamixel: Bus Watchdog stop) after this long without a
+    # packet from the host; 0: not configured (the sense board has none).
+    watchdog_s: float = 0.0
+    # Seconds per count of the device's watchdog register (BEAR: undocumented, assumed until measured with
+    # `bruce-hw-check --probe-watchdog`; Dynamixel: 20 ms by the control table).
+    watchdog_unit_s: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -96,6 +102,8 @@ class SafetyConfig:
     tilt_ticks: int
     max_sensor_age_s: float
     overrun_streak: int
+    reply_loss_max: float        # damping when one motor loses more than this share of its replies ...
+    reply_loss_window_s: float   # ... over this window (single lost replies are not faults)
 
 
 @dataclass(frozen=True, slots=True)
@@ -269,9 +277,12 @@ def _gains(r: _Reader, key: str, joints: tuple[str, ...]) -> PdGains:
     return PdGains(kp=kp, kd=kd)
 
 
-def _serial(r: _Reader, key: str, with_ids: bool, n_ids: int = 0) -> SerialBus:
-    allowed = {"port", "baud", "ids"} if with_ids else {"port", "baud"}
-    r.mapping(key, allowed)
+def _serial(r: _Reader, key: str, with_ids: bool, n_ids: int = 0, watchdog_unit_s: float | None = None) -> SerialBus:
+    """`watchdog_unit_s`: the register's fixed unit (Dynamixel); None: `watchdog_unit_s` is a key (BEAR)."""
+    allowed = {"port", "baud", "ids", "watchdog_s", "watchdog_unit_s"} if with_ids else {"port", "baud"}
+    if watchdog_unit_s is not None:
+        allowed.discard("watchdog_unit_s")
+    node = r.mapping(key, allowed)
     ids: tuple[int, ...] = ()
     if with_ids:
         raw = r.node(f"{key}.ids")
@@ -282,7 +293,11 @@ def _serial(r: _Reader, key: str, with_ids: bool, n_ids: int = 0) -> SerialBus:
         if len(set(raw)) != len(raw) or not all(0 <= i < 0xFE for i in raw):
             raise r.fail(f"{key}.ids", "unique IDs in 0..253", raw)
         ids = tuple(raw)
-    return SerialBus(port=r.string(f"{key}.port"), baud=r.integer(f"{key}.baud", positive=True), ids=ids)
+    watchdog_s = r.number(f"{key}.watchdog_s") if "watchdog_s" in node else 0.0
+    if watchdog_unit_s is None:
+        watchdog_unit_s = r.number(f"{key}.watchdog_unit_s", positive=True) if "watchdog_unit_s" in node else 0.001
+    return SerialBus(port=r.string(f"{key}.port"), baud=r.integer(f"{key}.baud", positive=True), ids=ids,
+                     watchdog_s=watchdog_s, watchdog_unit_s=watchdog_unit_s if with_ids else 0.0)
 
 
 _CAN_KEYS = {"interface", "channel", "bitrate", "host_id", "timeout_s", "motor_type", "ranges", "motors"}
@@ -360,7 +375,8 @@ _TOP_KEYS = {"name", "mjcf", "rates", "joints", "gains", "actuators", "coupling"
              "buses"}
 
 _SAFETY_KEYS = {"damping_kd", "damping_hold_s", "soft_start_s", "torque_ramp_s", "position_margin", "max_torque_rate",
-                "tilt_limit_deg", "tilt_ticks", "max_sensor_age_s", "overrun_streak"}
+                "tilt_limit_deg", "tilt_ticks", "max_sensor_age_s", "overrun_streak", "reply_loss_max",
+                "reply_loss_window_s"}
 
 
 def _safety(r: _Reader) -> SafetyConfig:
@@ -376,6 +392,8 @@ def _safety(r: _Reader) -> SafetyConfig:
         tilt_ticks=r.integer("safety.tilt_ticks", positive=True),
         max_sensor_age_s=r.number("safety.max_sensor_age_s", positive=True),
         overrun_streak=r.integer("safety.overrun_streak", positive=True),
+        reply_loss_max=r.number("safety.reply_loss_max", positive=True),
+        reply_loss_window_s=r.number("safety.reply_loss_window_s", positive=True),
     )
 
 
@@ -477,7 +495,7 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
     r.mapping("buses", {"bear", "dynamixel", "sense", "can"})
     buses = Buses(
         bear=_serial(r, "buses.bear", with_ids=True, n_ids=n),
-        dynamixel=_serial(r, "buses.dynamixel", with_ids=True, n_ids=len(arm_names)),
+        dynamixel=_serial(r, "buses.dynamixel", with_ids=True, n_ids=len(arm_names), watchdog_unit_s=0.02),
         sense=_serial(r, "buses.sense", with_ids=False),
         can=_can(r, joints),
     )
