@@ -26,20 +26,30 @@ ImuSample.orientation: the board measures none, so the backend fills it from an 
 the orientation when there is one and the raw accelerometer's direction otherwise, which the motors' reaction forces
 swing by tens of degrees.
 
+Lost replies: a BEAR reply lost or corrupted within a tick is not a fault. The tick's bulk cycle never retries (a
+retry cannot fit in the tick); the actuator keeps its last sample, whose stamp ages (JointState.stamp is the oldest
+actuator's). Lost replies are counted per ID (`link_report`, the run's stats).
+
 Fault paths (each lands in damping, `_on_fault`: BEAR torque_enable = 3 on every reachable actuator, CAN motors a
 damping-only command, the arms keep holding):
-- a silent BEAR or CAN motor (BusTimeout: the drivers' bounded retries take ~5 ms at BRUCE's 2 ms reply timeout),
-  a fault bit in a BEAR's error byte, an arm bus with no good cycle for 0.3 s or a servo error: the backend goes
-  to damping at once and read() raises BackendError naming the bus and the IDs; the runtime ends the session
-  with that message (a reading without the legs' data cannot go on to the controller);
+- a BEAR whose newest sample is older than `safety.max_sensor_age_s` (silence), a BEAR that lost more than
+  `safety.reply_loss_max` of its replies over `safety.reply_loss_window_s`, a silent CAN motor, a fault bit in a
+  BEAR's error byte, an arm bus with no good cycle for 0.3 s or a servo error: the backend goes to damping at once
+  and read() raises BackendError naming the bus, the IDs and the figure; the runtime ends the session with that
+  message (a reading without the legs' data cannot go on to the controller);
 - the E-stop (BEAR error bit 3): damping at once, and the reading says `estop`, which trips the safety stage;
 - a stopped IMU stream: damping once its newest sample is older than `safety.max_sensor_age_s` (after waiting up
   to IMU_WAIT_S for a newer one), naming the port; the reading keeps the old stamp, so the safety stage's
   sensor-age check trips in the same tick. Each self-inflicted fault while active is either raised or makes the
   safety stage trip on the same reading: a loop that went on would have its next write() refused.
-Shutdown (every exit path through Backend.shutdown, and at interpreter exit if nobody called it): damping, then
-the ports are closed; arms torque off and the sense board to idle, as BRUCE-OP's threads do on exit (§5.4). A
-killed process leaves the BEARs with their last goal current: BRUCE-OP configures no BEAR watchdog, nor does this.
+Motor-side watchdogs: a killed process or an unplugged bus cannot send damping, so the motors must stop by
+themselves. Start-up writes the BEARs' `watchdog_timeout` (`buses.bear.watchdog_s` in counts of
+`buses.bear.watchdog_unit_s`; in torque mode, enabled, a BEAR that hears nothing for that long enters damping) with
+torque disabled and reads it back, and the arm driver sets the Dynamixels' Bus Watchdog (`buses.dynamixel.watchdog_s`).
+BRUCE-OP sets neither.
+Shutdown (every exit path through Backend.shutdown, and at interpreter exit if nobody called it): damping, the BEARs'
+watchdog cleared (torque disabled for the write, then damping again), then the ports are closed; arms torque off
+(watchdog cleared) and the sense board to idle, as BRUCE-OP's threads do on exit (§5.4).
 """
 
 from __future__ import annotations
@@ -96,6 +106,7 @@ STANDARD_GRAVITY = 9.80665    # m/s^2: the sense board reports specific force sc
 # safety.max_sensor_age_s; CPython's default switch interval (5 ms) lets a busy thread hold them off that long.
 GIL_SWITCH_INTERVAL_S = 0.0005
 IMU_WAIT_S = 0.002            # how long a stale-looking IMU sample may wait for a newer one (see _newer_sense_sample)
+ASSUMED_WATCHDOG_UNIT_S = 0.001  # the config's default BEAR watchdog unit: an assumption until measured
 
 
 def _modules_missing(modules: dict[str, str]) -> list[str]:
@@ -138,9 +149,41 @@ class LegReading:
     position: np.ndarray   # rad
     velocity: np.ndarray   # rad/s
     torque: np.ndarray     # Nm, actuator output
-    stamp: float           # time.monotonic() when the replies were in
+    stamp: float           # time.monotonic() when the oldest actuator's sample came in (a lost reply keeps its last)
     estop_ids: tuple[int, ...] = ()
     faults: dict[int, tuple[str, ...]] = field(default_factory=dict)  # ID -> fault flags other than the E-stop
+    problem: str | None = None  # silence or a loss rate past the config's bound: the backend faults with this text
+
+
+class ReplyLoss:
+    """Lost replies per actuator over a sliding window of bus cycles, and since the start.
+
+    A lost or corrupt reply is not a fault: the actuator's last sample is kept and its age counts. Too many lost
+    over the window (`safety.reply_loss_max` of `safety.reply_loss_window_s`) is one: the share is taken over the
+    whole window, so the first cycles of a run cannot trip it on one or two losses."""
+
+    def __init__(self, n: int, window_cycles: int, max_share: float):
+        self.window = max(1, window_cycles)
+        self.max_share = max_share
+        self._ring = np.zeros((self.window, n), dtype=np.int32)
+        self._in_window = np.zeros(n, dtype=np.int64)
+        self.total = np.zeros(n, dtype=np.int64)
+        self._k = 0
+
+    def add(self, lost: np.ndarray) -> None:
+        """One cycle's lost mask (True: no reply)."""
+        row = lost.astype(np.int32)
+        self._in_window += row - self._ring[self._k]
+        self._ring[self._k] = row
+        self._k = (self._k + 1) % self.window
+        self.total += row
+
+    def share(self) -> np.ndarray:
+        return self._in_window / self.window
+
+    def over(self) -> np.ndarray:
+        """Actuators over the bound (indices)."""
+        return np.flatnonzero(self._in_window > self.max_share * self.window)
 
 
 # -- legs on BEARs --------------------------------------------------------------------------------------------
@@ -167,6 +210,16 @@ class BearLegs:
         self.first_cycle = self.last_cycle = math.nan
         self._monitor_tick = 0
         self._monitor_next = 0
+        safety = config.safety
+        self.max_age_s = safety.max_sensor_age_s
+        self.loss = ReplyLoss(len(self.ids), round(safety.reply_loss_window_s * config.loop_hz), safety.reply_loss_max)
+        n = len(self.ids)
+        self._position, self._velocity, self._iq = np.zeros(n), np.zeros(n), np.zeros(n)
+        self._stamps = np.full(n, -math.inf)  # when each actuator's kept sample came in
+        bus = config.buses.bear
+        # The register's count for the configured time (its unit is undocumented: bus.watchdog_unit_s is assumed
+        # until `bruce-hw-check --probe-watchdog` measures it); 0: no watchdog.
+        self.watchdog_count = max(1, round(bus.watchdog_s / bus.watchdog_unit_s)) if bus.watchdog_s > 0 else 0
 
     # -- start-up
     def open(self) -> None:
@@ -201,19 +254,60 @@ class BearLegs:
                 problems.append(f"{self.name}: ID {device_id}: clearing errors: {exc}")
         if problems:
             raise StartupError(problems)
+        from drivers.bear import RATED_CURRENT_A
+
+        if not self.i_max <= RATED_CURRENT_A:
+            raise StartupError([f"{self.name}: actuators.torque_limit / actuators.torque_per_amp = {self.i_max:.1f} A "
+                                f"is beyond the Koala BEAR's rated {RATED_CURRENT_A:g} A: nothing written"])
         low, high = actuator_position_limits(self.config)
         for k, device_id in enumerate(self.ids):
             settings = {"mode": int(Mode.TORQUE), "limit_i_max": self.i_max, "limit_position_min": float(low[k]),
-                        "limit_position_max": float(high[k]), **BEAR_GAINS}
+                        "limit_position_max": float(high[k]), "watchdog_timeout": self.watchdog_count, **BEAR_GAINS}
             try:
-                bus.write_config(device_id, settings, verify=True)
+                bus.write_config(device_id, settings, verify=True)  # torque is disabled: read back, or it raises
                 self.homing_offset[k] = bus.read_config(device_id, "homing_offset")["homing_offset"]
             except DriverError as exc:
-                problems.append(f"{self.name}: ID {device_id}: writing limits and gains: {exc}")
+                problems.append(f"{self.name}: ID {device_id}: writing limits, gains and watchdog: {exc}")
         if problems:
             raise StartupError(problems)
+        if self.watchdog_count:
+            cfg = self.config.buses.bear
+            log.info("%s: BEAR watchdog_timeout %d (%.0f ms at %g s per count%s), read back from every BEAR",
+                     self.name, self.watchdog_count, 1e3 * self.watchdog_count * cfg.watchdog_unit_s,
+                     cfg.watchdog_unit_s, "; the unit is assumed until `bruce-hw-check --probe-watchdog` measures it"
+                     if cfg.watchdog_unit_s == ASSUMED_WATCHDOG_UNIT_S else "")
         for _ in self.ids:
             self.monitor()
+        self._seed()
+
+    def _seed(self) -> None:
+        """Every actuator's first sample, with retries (before the loop, a lost reply may be asked for again)."""
+        reply = self.bus.bulk_cycle(self.ids, None)
+        self._keep(reply, np.ones(len(self.ids), dtype=bool), time.monotonic())
+
+    def _keep(self, reply, answered: np.ndarray, stamp: float) -> None:
+        self._position[answered] = reply.position[answered]
+        self._velocity[answered] = reply.velocity[answered]
+        self._iq[answered] = reply.iq[answered]
+        self._stamps[answered] = stamp
+
+    def clear_watchdog(self) -> None:
+        """watchdog_timeout back to 0 (a clean shutdown leaves the BEARs as other software expects them): config
+        registers take writes only with torque disabled, so disable, write and read back, then damping again.
+        Best effort: it runs on the shutdown path."""
+        from drivers.bear import TorqueEnable
+        from drivers.errors import DriverError
+
+        if self.bus is None or not self.watchdog_count:
+            return
+        try:
+            self.bus.set_torque_enable(self.ids, TorqueEnable.DISABLED)
+            for device_id in self.ids:
+                self.bus.write_config(device_id, {"watchdog_timeout": 0}, verify=True)
+        except DriverError as exc:
+            log.warning("%s: clearing watchdog_timeout: %s (the BEARs keep it until power-off)", self.name, exc)
+        finally:
+            self.damp()
 
     # -- lifecycle
     def enable(self) -> None:
@@ -257,28 +351,57 @@ class BearLegs:
             self.bus = None
 
     # -- per tick
-    def cycle(self, torque: np.ndarray | None, damping: bool = False) -> LegReading:
+    def cycle(self, torque: np.ndarray | None, damping: bool = False, retry: bool = False) -> LegReading:
         """One bulk cycle: goal currents for `torque` (actuator Nm; None: read only), present values back. In
-        damping the BEARs damp by themselves: `damping` changes nothing here."""
+        damping the BEARs damp by themselves: `damping` changes nothing here. A lost reply keeps that actuator's
+        last sample (its stamp ages); `problem` is set when a sample is older than `safety.max_sensor_age_s` or
+        an actuator lost more than `safety.reply_loss_max` of its replies over the window. `retry` (outside the
+        loop's ticks: before the first command) asks again for lost replies and raises BusTimeout for silent IDs."""
         if torque is None:
-            reply = self.bus.bulk_cycle(self.ids, None)
+            reply = self.bus.bulk_cycle(self.ids, None, partial=not retry)
         else:
-            reply = self.bus.bulk_cycle(self.ids, self._torque_mode, goal_iq=torque / self.kt)
+            reply = self.bus.bulk_cycle(self.ids, self._torque_mode, goal_iq=torque / self.kt, partial=True)
         stamp = time.monotonic()
         self.cycles += 1
         if self.cycles == 1:
             self.first_cycle = stamp
         self.last_cycle = stamp
+        answered = np.ones(len(self.ids), dtype=bool) if reply.answered is None else reply.answered
+        self._keep(reply, answered, stamp)
+        self.loss.add(~answered)
         faults = {}
         for device_id, error in zip(self.ids, reply.error.tolist(), strict=True):
             if error & self._fault_bits:
                 faults[device_id] = reply.flags(device_id)
-        reading = LegReading(reply.position, reply.velocity, reply.iq * self.kt, stamp, reply.estop_ids(), faults)
+        reading = LegReading(self._position.copy(), self._velocity.copy(), self._iq * self.kt,
+                             float(self._stamps.min()), reply.estop_ids(), faults, self._problem(stamp))
         self._monitor_tick += 1
         if self._monitor_tick >= MONITOR_EVERY_TICKS:
             self._monitor_tick = 0
             self.monitor()
         return reading
+
+    def _problem(self, now: float) -> str | None:
+        ages = now - self._stamps
+        stale = np.flatnonzero(ages > self.max_age_s)
+        if stale.size:
+            return (f"no reply from ID(s) {_ids(self.ids[k] for k in stale)} for {1e3 * float(ages[stale].max()):.1f} "
+                    f"ms > safety.max_sensor_age_s {1e3 * self.max_age_s:.1f} ms")
+        over = self.loss.over()
+        if over.size:
+            share = self.loss.share()
+            return ("reply loss " + ", ".join(f"ID {self.ids[k]} {100 * share[k]:.1f} %" for k in over)
+                    + f" over the last {self.loss.window} cycles > safety.reply_loss_max "
+                      f"{100 * self.loss.max_share:g} %")
+        return None
+
+    def link_report(self) -> dict:
+        """Cycles and lost replies per ID, for the run's summary and stats."""
+        lost = {str(i): int(n) for i, n in zip(self.ids, self.loss.total.tolist(), strict=True)}
+        total = int(self.loss.total.sum())
+        return {"bus": self.name, "cycles": self.cycles, "replies_lost": lost, "replies_lost_total": total,
+                "reply_loss_share": total / (self.cycles * len(self.ids)) if self.cycles else 0.0,
+                "watchdog_timeout": self.watchdog_count}
 
     def monitor(self) -> None:
         """Temperatures and voltage of the next BEAR in turn; a BEAR that does not answer is left to the next
@@ -290,7 +413,7 @@ class BearLegs:
         device_id = self.ids[k]
         try:
             reply = self.bus.read_status(device_id, MONITOR_REGISTERS)
-        except BusTimeout:
+        except BusTimeout:  # one lost reply is not worth a retry in the tick: the next round asks again
             return
         hottest = max(reply[name] for name in MONITOR_REGISTERS[:3])
         if hottest > TEMPERATURE_WARN_C and not self.temperature[k] > TEMPERATURE_WARN_C:
@@ -306,8 +429,9 @@ class BearLegs:
         span = self.last_cycle - self.first_cycle if self.cycles > 1 else math.nan
         rate = (self.cycles - 1) / span if span > 0 else math.nan
         stats = self.bus.stats if self.bus is not None else None
-        link = "" if stats is None else (f", {stats.timeouts} timeouts, {stats.retries} retries, "
-                                         f"{stats.rejected_total} rejected")
+        lost = int(self.loss.total.sum())
+        link = "" if stats is None else (f", {lost} replies lost, {stats.retries} retries, "
+                                         f"{stats.rejected_total} bytes/packets rejected")
         return f"{self.name}: {self.cycles} bulk cycles in {span:.2f} s ({rate:.0f} Hz){link}"
 
 
@@ -376,7 +500,14 @@ class CanLegs:
             self.group.close()
             self.group = None
 
-    def cycle(self, torque: np.ndarray | None, damping: bool = False) -> LegReading:
+    def clear_watchdog(self) -> None:
+        """The MIT protocol has no watchdog register to clear."""
+
+    def link_report(self) -> dict:
+        timeouts = sum(s.timeouts for s in self.group.stats.values()) if self.group is not None else 0
+        return {"bus": self.name, "cycles": self.cycles, "timeouts": timeouts}
+
+    def cycle(self, torque: np.ndarray | None, damping: bool = False, retry: bool = False) -> LegReading:
         if damping:
             state = self.group.damp(self.damping_kd)
         elif torque is None:
@@ -598,6 +729,7 @@ class HwBackend(Backend):
         atexit.unregister(self.shutdown)
         try:
             self.legs.damp()
+            self.legs.clear_watchdog()  # and damping again
         finally:
             log.info("hw backend: %s", self.link_summary())
             self._close_all()
@@ -620,6 +752,15 @@ class HwBackend(Backend):
             self.sense.close()  # board to IDLE
             self.sense = None
 
+    def link_report(self) -> dict:
+        """Per-bus link figures for the run's stats: leg cycles and lost replies per ID, arm cycles."""
+        report = {"legs": self.legs.link_report(),
+                  "arms": {"bus": self.arms.name, "cycles": self.arms.cycles, "failed_cycles": self.arms.failed_cycles}}
+        if self.sense is not None:
+            report["sense"] = {"port": self.sense_port, "samples": self.sense.sample_count,
+                               "stalls": self.sense.stats.timeouts, "rejected": self.sense.stats.rejected_total}
+        return report
+
     def link_summary(self) -> str:
         parts = [self.legs.summary(), f"Dynamixel: {self.arms.cycles} arm cycles, {self.arms.failed_cycles} failed"]
         if self.sense is not None:
@@ -638,13 +779,17 @@ class HwBackend(Backend):
         from drivers.errors import BusTimeout, DriverError
 
         state = self._state
+        torque = self._torque if state is LifecycleState.ACTIVE else None
         try:
-            reading = self.legs.cycle(self._torque if state is LifecycleState.ACTIVE else None,
-                                      damping=state is LifecycleState.FAULT)
+            # Before the first command (inactive, or the activation's read-only cycle) lost replies are asked again.
+            reading = self.legs.cycle(torque, damping=state is LifecycleState.FAULT,
+                                      retry=torque is None and state is not LifecycleState.FAULT)
         except BusTimeout as exc:
             raise self._fail(f"{self.legs.kind} {exc}") from exc  # names the port (channels) and the silent IDs
         except DriverError as exc:
             raise self._fail(f"{self.legs.name}: {exc}") from exc
+        if reading.problem and state is not LifecycleState.FAULT:
+            raise self._fail(f"{self.legs.name}: {reading.problem}")
         if reading.faults and state is not LifecycleState.FAULT:
             raise self._fail(f"{self.legs.name}: " + "; ".join(
                 f"ID {i} reports {', '.join(flags)}" for i, flags in reading.faults.items()))

@@ -23,7 +23,10 @@ Choices where the sources are silent or disagree (drivers/emulators/bear.py make
 - Timeouts: all replies of a request must be in within `reply_timeout_s` (2 ms: BRUCE's bulk_timeout, AOS) plus the
   wire time of request and replies at the bus baud rate; `tries` = 2 (AOS). A bulk retry is sent only to the motors
   that did not answer (their goals are written again; goal writes are idempotent). Serial reads block at most
-  `read_slice_s` each, so no call can block for long, whatever the device does.
+  `read_slice_s` each, so no call can block for long, whatever the device does. Replies come in request order, so
+  once the last ID's reply is in, a missing earlier one is lost and nobody waits for it. The control tick's bulk
+  cycle (`partial=True`) never retries: a lost reply costs that motor one sample, which the caller keeps from before.
+- Current registers (limit_i_max, goal_iq, goal_id) are never written beyond the Koala BEAR's rated 30 A.
 - Config registers can only be written while torque is disabled (Rust driver), and a BEAR gives no reply to writes,
   so `write_config` reads the values back and raises if the device did not take them.
 - f32 values must be finite (a NaN goal is never sent to a motor); u32 values must be integers in range, so a u32
@@ -52,6 +55,10 @@ MAX_BULK_REGISTERS = 15  # one nibble each for the read and the write count
 MAX_PARAMS = 253  # LEN is one byte: n_params + 2 <= 255
 MAX_FRAME = 4 + 255  # FF FF ID LEN + LEN bytes
 FLOAT32_MAX = 3.4028234663852886e38
+# The Koala BEAR's rated current (BRUCE-OP: limit_i_max 30 A = 10.5 N m at 0.35 N m/A). No current register is ever
+# written beyond it, whatever a caller computed: a wrong torque constant in a config must not reach the windings.
+RATED_CURRENT_A = 30.0
+RATED_LIMITS = {"limit_i_max": RATED_CURRENT_A, "goal_iq": RATED_CURRENT_A, "goal_id": RATED_CURRENT_A}
 
 
 class Instruction(IntEnum):
@@ -125,6 +132,9 @@ class Register:
             raise ValueError(f"{self.name} is f32: {value!r} is not a number") from exc
         if not math.isfinite(number) or abs(number) > FLOAT32_MAX:
             raise ValueError(f"{self.name} is f32: {value!r} is not a finite float32")
+        rated = RATED_LIMITS.get(self.name)
+        if rated is not None and abs(number) > rated:
+            raise ValueError(f"{self.name} {number:g} A is beyond the Koala BEAR's rated {rated:g} A")
         return number
 
     def encode(self, value) -> bytes:
@@ -438,8 +448,16 @@ class BulkReply:
     bus: str
     ids: tuple[int, ...]
     registers: tuple[str, ...]
-    values: np.ndarray  # (len(ids), len(registers)) float64
-    error: np.ndarray  # (len(ids),) uint8 error bytes; 0 where nothing was read (write-only bulk)
+    values: np.ndarray  # (len(ids), len(registers)) float64; NaN rows for IDs that did not answer (partial replies)
+    error: np.ndarray  # (len(ids),) uint8 error bytes; 0 where nothing was read (write-only bulk, no answer)
+    answered: np.ndarray | None = None  # (len(ids),) bool; None: every ID answered
+
+    @property
+    def lost_ids(self) -> tuple[int, ...]:
+        """IDs whose reply did not come (partial replies only)."""
+        if self.answered is None:
+            return ()
+        return tuple(i for i, ok in zip(self.ids, self.answered.tolist(), strict=True) if not ok)
 
     def column(self, name: str) -> np.ndarray:
         return self.values[:, self.registers.index(name)]
@@ -589,9 +607,12 @@ class BearBus:
         return reply
 
     def bulk_comm(self, ids: Sequence[int], read_regs: Sequence[str | int] = (), write_regs: Sequence[str | int] = (),
-                  values=None) -> BulkReply:
+                  values=None, partial: bool = False) -> BulkReply:
         """One BULK_COMM: read `read_regs` of every ID and write `values[k]` (one row per ID, in `write_regs` order)
-        to ids[k]. Motors that do not answer are asked again (`tries` in all); BusTimeout names those that never do."""
+        to ids[k]. Motors that do not answer are asked again (`tries` in all); BusTimeout names those that never do.
+
+        `partial`: one try, never a retry (a control tick cannot wait for one), and whatever came back is returned:
+        rows of IDs that did not answer are NaN and `answered` says which; the caller keeps their last sample."""
         ids = tuple(int(i) for i in ids)
         reads = [status_register(n) for n in read_regs]
         writes = [status_register(n) for n in write_regs]
@@ -605,7 +626,7 @@ class BearBus:
             return BulkReply(self.port, ids, names, np.zeros((len(ids), 0)), np.zeros(len(ids), np.uint8))
         got: dict[int, StatusPacket] = {}
         pending = list(ids)
-        for attempt in range(self.tries):
+        for attempt in range(1 if partial else self.tries):
             if attempt:
                 self.stats.retries += 1
                 request = encode_bulk(pending, reads, writes, [rows[i] for i in pending] if writes else None)
@@ -613,19 +634,24 @@ class BearBus:
             pending = [i for i in pending if i not in got]
             if not pending:
                 break
+        fmt = "<" + "".join(r.fmt for r in reads)
         if pending:
             self.stats.timeouts += 1
-            raise BusTimeout(self.port, pending, f"BULK_COMM, {self.tries} tries")
-        fmt = "<" + "".join(r.fmt for r in reads)
+            if not partial:
+                raise BusTimeout(self.port, pending, f"BULK_COMM, {self.tries} tries")
+            lost = np.full(len(reads), np.nan)
+            table = np.array([struct.unpack(fmt, got[i].data) if i in got else lost for i in ids], dtype=np.float64)
+            errors = np.array([got[i].error if i in got else 0 for i in ids], dtype=np.uint8)
+            return BulkReply(self.port, ids, names, table, errors, np.array([i in got for i in ids]))
         table = np.array([struct.unpack(fmt, got[i].data) for i in ids], dtype=np.float64)
         return BulkReply(self.port, ids, names, table, np.array([got[i].error for i in ids], dtype=np.uint8))
 
     def bulk_cycle(self, ids: Sequence[int], mode: Mode | int | str | None, goal_position=None, goal_velocity=None,
-                   goal_iq=None) -> BulkReply:
+                   goal_iq=None, partial: bool = False) -> BulkReply:
         """One control tick: read present_position, present_velocity and present_iq of every ID and write the
         mode's goals (force: goal_position, goal_velocity, goal_iq; torque: goal_iq; position: goal_position;
         velocity: goal_velocity; None: read only). Goals are arrays in ID order; the reply's `position`,
-        `velocity`, `iq` and `error` are arrays in ID order."""
+        `velocity`, `iq` and `error` are arrays in ID order. `partial`: see `bulk_comm`."""
         writes: tuple[str, ...] = ()
         columns = []
         if mode is not None:
@@ -640,7 +666,7 @@ class BearBus:
                     raise ValueError(f"{name}: {column.size} values for {len(ids)} IDs")
                 columns.append(column)
         values = np.column_stack(columns).tolist() if columns else None
-        return self.bulk_comm(ids, CYCLE_READS, writes, values)
+        return self.bulk_comm(ids, CYCLE_READS, writes, values, partial=partial)
 
     def cycle_budget_s(self, n_ids: int, n_read: int = len(CYCLE_READS), n_write: int = 3) -> float:
         """Longest a bulk call can take before BusTimeout, all tries included (excluding the host's scheduling)."""
@@ -700,6 +726,8 @@ class BearBus:
                     self.stats.reject("duplicate")
                 else:
                     got[packet.id] = packet
+            if ids[-1] in got:
+                break  # replies come in request order: one still missing before the last is lost, not late
         if len(got) < len(ids) and self._parser.pending:
             self.stats.reject("truncated")
         self._parser.clear()

@@ -13,17 +13,12 @@ import logging
 import math
 import os
 import sys
-from dataclasses import replace
 from pathlib import Path
 
-from bruce_hw.backend import BACKENDS, BackendError, make_backend
-from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
-from bruce_hw.reality_gap import GapError, load_gap
-from runtime.commands import COMMAND_AXES, COMMAND_LIMITS, COMMAND_UNITS, CommandSchedule
-from runtime.estimation import ESTIMATORS
-from runtime.inference import ModelError
-from runtime.mixing import TRANSFERS
-from runtime.run import CONTROLLERS, run_session
+from runtime.exit import ExitCode, StopFlag, StopRequested
+
+# Everything else is imported inside the functions: `main` takes SIGINT/SIGTERM over first, so that a signal while
+# numpy, MuJoCo or onnxruntime load ends the run with one line and exit code 0, never a traceback.
 
 
 def positive_seconds(text: str) -> float:
@@ -40,8 +35,10 @@ def seed(text: str) -> int:
     return value
 
 
-def constant_command(text: str) -> CommandSchedule:
+def constant_command(text: str):
     """--cmd VX,VY,WZ: one velocity command, within COMMAND_LIMITS."""
+    from runtime.commands import COMMAND_AXES, CommandSchedule
+
     try:
         values = [float(part) for part in text.split(",")]
     except ValueError:
@@ -60,9 +57,15 @@ def default_rerun_sink() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from bruce_hw.backend import BACKENDS
+    from bruce_hw.config import DEFAULT_CONFIG
+    from runtime.commands import COMMAND_LIMITS, COMMAND_UNITS
+    from runtime.estimation import ESTIMATORS
+    from runtime.mixing import TRANSFERS
+    from runtime.run import CONTROLLERS
     from runtime.telemetry import SINK_HELP
 
-    p = argparse.ArgumentParser(prog="bruce-run", description=__doc__)
+    p = argparse.ArgumentParser(prog="bruce-run", description=__doc__, epilog=EXIT_CODES_HELP)
     p.add_argument("--backend", choices=BACKENDS, default="mock",
                    help="mock: MuJoCo simulation; echo: kinematic mirror; hw: the robot's buses")
     p.add_argument("--config", default=DEFAULT_CONFIG, help="robot config YAML (default: %(default)s)")
@@ -108,7 +111,30 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+EXIT_CODES_HELP = "exit codes: " + ", ".join(f"{int(c)} {c.name.lower().replace('_', ' ')}" for c in ExitCode)
+
+
 def main(argv: list[str] | None = None) -> int:
+    """bruce-run; the exit code is a runtime.exit.ExitCode."""
+    stop = StopFlag().install()
+    try:
+        return _main(argv, stop)
+    except StopRequested as exc:
+        print(f"bruce-run: {exc} during start-up: stopped before any motor was enabled", file=sys.stderr)
+        return ExitCode.OK
+    finally:
+        stop.restore()
+
+
+def _main(argv: list[str] | None, stop: StopFlag) -> int:
+    from dataclasses import replace
+
+    from bruce_hw.backend import BackendError, make_backend
+    from bruce_hw.config import ConfigError, load_config
+    from bruce_hw.reality_gap import GapError, load_gap
+    from runtime.commands import CommandSchedule
+    from runtime.inference import ModelError
+    from runtime.run import RunSummary, exit_code_of, run_session, write_stats
     from runtime.telemetry import TelemetryError, parse_sink
 
     parser = build_parser()
@@ -124,7 +150,17 @@ def main(argv: list[str] | None = None) -> int:
         sink = parse_sink(args.rerun or default_rerun_sink())
     except ValueError as exc:
         parser.error(f"--rerun: {exc}")
+
+    def refused(code: ExitCode, text: str, error: str | None) -> int:
+        """The end of a run that never reached its session: one line, and the stats."""
+        print(f"bruce-run: {text}", file=sys.stderr)
+        summary = RunSummary(backend=args.backend, transfer=args.transfer, error=error)
+        summary.end(code, text)
+        write_stats(summary, args.stats)
+        return code
+
     try:
+        stop.arm()  # a signal from here on (or one that came while the modules loaded) stops start-up at once
         config = load_config(args.config, args.overrides)
         commands = CommandSchedule.from_yaml(args.scenario) if args.scenario is not None else args.cmd
         options = {}
@@ -134,8 +170,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"bruce-run: reality gap {gap.source} (seed {options['gap'].seed})", flush=True)
         backend = make_backend(args.backend, config, **options)
     except (ConfigError, GapError, BackendError) as exc:
-        print(f"bruce-run: {exc}", file=sys.stderr)
-        return 2
+        # a missing device file is an input too: the port setting
+        return refused(ExitCode.BAD_INPUT, str(exc), f"{type(exc).__name__}: {exc}")
+    except StopRequested as exc:
+        return refused(ExitCode.OK, f"{exc} during start-up: stopped before any motor was enabled", None)
     realtime = args.realtime or args.backend == "hw"  # a robot is always paced
     duration = args.duration
     if duration is None and args.scenario is not None:
@@ -144,11 +182,11 @@ def main(argv: list[str] | None = None) -> int:
         summary = run_session(backend, config, duration=duration, realtime=realtime, stats_path=args.stats,
                               transfer=args.transfer, policy=args.policy, pinn=args.pinn,
                               rerun=None if sink.kind == "off" else sink, controller_kind=args.controller,
-                              estimator=args.estimator, commands=commands)
-    except (BackendError, ModelError, TelemetryError) as exc:
+                              estimator=args.estimator, commands=commands, stop=stop)
+    except (BackendError, ModelError, TelemetryError, ValueError) as exc:
         print(f"bruce-run: {exc}", file=sys.stderr)
-        return 1
-    return 0 if summary.error is None else 1
+        return exit_code_of(exc)
+    return summary.exit_code
 
 
 if __name__ == "__main__":

@@ -78,10 +78,14 @@ class LoopStats:
         j = self.to_json()
         if not self.ticks:
             return "  loop: no ticks"
-        lines = [f"  loop: work p50 {j['work_us']['p50']:.0f} / p99 {j['work_us']['p99']:.0f} / max "
-                 f"{j['work_us']['max']:.0f} µs, period p50 {j['period_us']['p50']:.0f} / p99 "
-                 f"{j['period_us']['p99']:.0f} / max {j['period_us']['max']:.0f} µs, late {self.late_ticks} "
-                 f"({100 * j['late_share']:.3f} %), skipped {self.skipped_ticks}"]
+
+        def us(value: float | None) -> str:  # a one-tick run has no period
+            return "-" if value is None else f"{value:.0f}"
+
+        work, period = j["work_us"], j["period_us"]
+        lines = [f"  loop: work p50 {us(work['p50'])} / p99 {us(work['p99'])} / max {us(work['max'])} µs, period "
+                 f"p50 {us(period['p50'])} / p99 {us(period['p99'])} / max {us(period['max'])} µs, late "
+                 f"{self.late_ticks} ({100 * j['late_share']:.3f} %), skipped {self.skipped_ticks}"]
         parts = [f"{name} {v['p50']:.0f}/{v['p99']:.0f}" for name, v in j["sections_us"].items()]
         lines.append("  sections p50/p99 µs: " + ", ".join(parts))
         return "\n".join(lines)

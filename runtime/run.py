@@ -20,7 +20,6 @@ import json
 import logging
 import math
 import queue
-import signal
 import sys
 import time
 from dataclasses import asdict, dataclass, field, fields
@@ -31,9 +30,10 @@ import numpy as np
 
 from bruce_hw.backend import Backend, BackendError, LifecycleState
 from bruce_hw.config import RobotConfig
-from bruce_hw.types import GroundTruth, JointCommand
+from bruce_hw.types import GroundTruth, JointCommand, RobotState
 from runtime.commands import COMMAND_AXES
 from runtime.estimation import Estimator, euler_of, make_estimator, tilt_angle, tilt_of
+from runtime.exit import FAULT_CLASSES, ExitCode, StopFlag, StopRequested
 from runtime.inference import ModelError, OnnxPinn, OnnxPolicy
 from runtime.loopstats import LoopStats
 from runtime.mixing import TRANSFERS, eq8_torque, eq9_torque
@@ -50,6 +50,13 @@ AT_REST_TICKS = 100          # ... for this many ticks in a row
 TRUTH_PHASE = 5              # the mock's truth log runs on this tick of each policy period, not with the policy
 TRACKING_SKIP_S = 2.0        # velocity tracking is scored after this start-up transient (soft start, first steps)
 CONTROLLERS = ("policy", "teacher", "standing")
+# A joint target further than this outside joints.position_limits is no target a working controller gives: the
+# model is broken (refused before the motors are enabled, a safety trip after).
+TARGET_MARGIN_RAD = 0.5
+# One PINN tick moves q by qd dt (~0.01 rad): a prediction a whole joint range outside the limits, or faster than
+# this many times the velocity limit, is a broken model.
+PINN_RANGE_MULTIPLE = 1.0
+PINN_VELOCITY_MULTIPLE = 2.0
 
 
 def heading_velocity(truth: GroundTruth) -> np.ndarray:
@@ -175,6 +182,17 @@ class RunSummary:
     loop: LoopStats = field(default_factory=LoopStats)
     realtime_grant: RealtimeGrant | None = None
     truth: GroundTruthLog | None = None
+    exit_code: int = ExitCode.OK
+    fault_class: str | None = None   # input, safety, bus, internal (runtime.exit.ExitCode); None: a normal end
+    link: dict | None = None         # the backend's bus figures (hw: cycles, lost replies per ID)
+
+    def end(self, code: ExitCode, cause: str | None = None) -> None:
+        """Record how the run ended (the first fault wins)."""
+        if self.fault_class is None:
+            self.exit_code = int(code)
+            self.fault_class = FAULT_CLASSES.get(code)
+        if cause and self.stop_cause is None:
+            self.stop_cause = cause
 
     @property
     def ticks(self) -> int:
@@ -182,6 +200,7 @@ class RunSummary:
 
     def to_json(self) -> dict:
         out = {k: v for k, v in asdict(self).items() if k not in ("truth", "loop", "realtime_grant")}
+        out["exit_code"] = int(self.exit_code)
         out.update(self.loop.to_json())
         out["realtime_grant"] = self.realtime_grant.to_json() if self.realtime_grant else None
         if self.truth is not None:
@@ -201,23 +220,20 @@ class RunSummary:
             if t.tracking.samples:
                 lines.append(t.tracking.text())
         lines.append(self.loop.text())
+        legs = (self.link or {}).get("legs", {})
+        if "replies_lost" in legs:
+            lost = {i: n for i, n in legs["replies_lost"].items() if n}
+            lines.append(f"  {legs['bus']}: {legs['cycles']} cycles, {legs['replies_lost_total']} replies lost "
+                         f"({100 * legs['reply_loss_share']:.2f} %)"
+                         + (": " + ", ".join(f"ID {i} {n}" for i, n in lost.items()) if lost else ""))
         if self.telemetry_dropped:
             lines.append(f"  telemetry: {self.telemetry_dropped} rows dropped (buffer full)")
         cause = f" ({self.stop_cause})" if self.stop_cause else ""
-        lines.append(f"  final state: {self.final_state}{cause}")
+        lines.append(f"  final state: {self.final_state}{cause}; exit code {int(self.exit_code)}"
+                     + (f" ({self.fault_class})" if self.fault_class else ""))
         if self.error:
             lines.append(f"  error: {self.error}")
         return "\n".join(lines)
-
-
-class StopFlag:
-    """Set from a signal handler; the loop polls it once per tick."""
-
-    def __init__(self):
-        self.cause: str | None = None
-
-    def __call__(self, signum, _frame) -> None:
-        self.cause = signal.Signals(signum).name
 
 
 class LogRelay:
@@ -280,10 +296,79 @@ def build_pinn(config: RobotConfig, transfer: str, pinn_path: Path | None) -> On
     return pinn
 
 
+def check_models(config: RobotConfig, controller, name: str, pinn: OnnxPinn | None, robot: RobotState,
+                 estimator: Estimator) -> None:
+    """Before the motors are enabled: the controller on the measured state (zero command) and one PINN step from it
+    must give finite values within physical ranges (targets within joints.position_limits + TARGET_MARGIN_RAD;
+    PINN q within PINN_RANGE_MULTIPLE joint ranges of the limits, qd within PINN_VELOCITY_MULTIPLE velocity
+    limits). Raises ModelError naming the model, the joint and the value. Leaves the models reset."""
+    q, qd = robot.joints.q, robot.joints.qd
+    controller.reset(q)
+    estimator.reset(robot)
+    estimator.update(robot)
+    a = np.asarray(_refusing(controller, robot, estimator.estimate(), np.zeros(3)), dtype=np.float64)
+    _check_range(config, f"{name}: warm-up on the measured pose: target", a, config.q_lower - TARGET_MARGIN_RAD,
+                 config.q_upper + TARGET_MARGIN_RAD, f"joints.position_limits +- {TARGET_MARGIN_RAD} rad")
+    if pinn is not None:
+        pinn.reset()
+        q_hat, qd_hat = _refusing(pinn.step, q, qd, eq8_torque(a, q, qd, config.eq8))
+        span = PINN_RANGE_MULTIPLE * (config.q_upper - config.q_lower)
+        what = f"PINN model {pinn.path}: warm-up on the measured pose"
+        _check_range(config, f"{what}: q_next", q_hat, config.q_lower - span, config.q_upper + span,
+                     f"joints.position_limits widened by {PINN_RANGE_MULTIPLE:g} joint range")
+        limit = PINN_VELOCITY_MULTIPLE * config.qd_limit
+        _check_range(config, f"{what}: qd_next", qd_hat, -limit, limit,
+                     f"{PINN_VELOCITY_MULTIPLE:g} x joints.velocity_limits")
+        pinn.reset()
+    controller.reset(q)
+    estimator.reset(robot)
+
+
+def _refusing(call, *args):
+    try:
+        return call(*args)
+    except ModelError as exc:
+        raise ModelError(f"{exc} on the measured pose; refused before the motors were enabled") from None
+
+
+def _check_range(config: RobotConfig, what: str, values: np.ndarray, low: np.ndarray, high: np.ndarray,
+                 bound: str) -> None:
+    if values.shape != (config.n_joints,):
+        raise ModelError(f"{what}: expected {config.n_joints} values, got shape {values.shape}")
+    bad = ~((values >= low) & (values <= high))  # NaN fails both
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ModelError(f"{what} {values[i]:.4g} for {config.joints[i]} outside [{low[i]:.3g}, {high[i]:.3g}] "
+                         f"({bound}); refused before the motors were enabled")
+
+
+def write_stats(summary: RunSummary, path: Path | None) -> None:
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(summary.to_json(), indent=2) + "\n")
+
+
+def exit_code_of(exc: BaseException) -> ExitCode:
+    """The exit code of a run that ended with `exc`."""
+    from bruce_hw.config import ConfigError
+    from bruce_hw.reality_gap import GapError
+
+    if isinstance(exc, StopRequested | KeyboardInterrupt):
+        return ExitCode.OK
+    if isinstance(exc, ConfigError | GapError | ModelError | ValueError) and not isinstance(exc, BackendError):
+        return ExitCode.BAD_INPUT
+    if isinstance(exc, BackendError):
+        return ExitCode.BUS_FAULT
+    if type(exc).__name__ == "TelemetryError":  # runtime.telemetry loads rerun: not imported here for a name
+        return ExitCode.BAD_INPUT
+    return ExitCode.INTERNAL
+
+
 def run_session(backend: Backend, config: RobotConfig, *, duration: float | None, realtime: bool,
                 stats_path: Path | None = None, transfer: str = "direct", policy: Path | None = None,
                 pinn: Path | None = None, rerun=None, controller=None, controller_kind: str = "policy",
-                estimator: str | Estimator | None = None, commands=None, recorder=None) -> RunSummary:
+                estimator: str | Estimator | None = None, commands=None, recorder=None,
+                stop: StopFlag | None = None) -> RunSummary:
     """Run one session. `rerun` is a `runtime.telemetry.RerunSink` (None: no telemetry); `controller_kind` picks
     the nominal controller (`build_controller`), and `controller` replaces it (anything with reset(q) and
     __call__(state, base, command) -> a); `estimator` is an estimator kind (`runtime.estimation.ESTIMATORS`) or
@@ -292,15 +377,23 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
     (default: stand still). `recorder(tick, q, qd, tau)` (e.g. `training.collect`'s) is called on every tick
     after the write with the state read and the torque written (the arrays are the loop's: copy what you keep);
     a non-empty string it returns ends the run after that tick, as the end of `duration` does, with that
-    string as the stop cause. Its time counts in the telemetry section."""
+    string as the stop cause. Its time counts in the telemetry section.
+
+    SIGINT/SIGTERM (`stop`, installed here if not given) before activation end start-up at once with nothing
+    enabled (the summary says so, exit code 0, nothing raised); after, the loop ends through damping. Every model is
+    checked on the measured state before the motors are enabled (`check_models`). The summary's `exit_code` and
+    `fault_class` say how the run ended (runtime.exit.ExitCode); the stats are written on every path. Errors are
+    re-raised after the summary is written (StopRequested is not an error)."""
     summary = RunSummary(backend=backend.name, realtime=realtime, transfer=transfer)
-    stop = StopFlag()
-    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    stop = stop or StopFlag()
+    stop.abort = False  # until the try below, which arms it: nothing outside it may be cut short
+    stop.install()
     relay = LogRelay().__enter__()
     wall_start = time.perf_counter()
     grant: RealtimeGrant | None = None
     telemetry = None
     try:
+        stop.arm()
         backend.configure()
         robot = backend.read()
         if backend.ground_truth() is not None:
@@ -325,6 +418,11 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         # an enabled robot would stand that long on its last (zero) command.
         gc.collect()
         gc.freeze()
+        check_models(config, controller, controller_name, pinn_runner, robot, estimator)
+        # From here a signal only sets the flag: the loop brings the robot down through damping.
+        stop.abort = False
+        if stop.cause is not None:  # came while `abort` was being cleared
+            raise StopRequested(f"{stop.cause} received")
         backend.activate()
         controller.reset(robot.joints.q)
         estimator.reset(robot)
@@ -342,15 +440,20 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         summary.final_state = backend.state.value
         if backend.state is LifecycleState.FAULT:
             summary.final_state = f"{backend.state.value}: damping"
+    except StopRequested as exc:
+        stop.abort = False  # a second signal must not cut the shutdown below short
+        summary.end(ExitCode.OK, f"{exc} before activation: no motor was enabled")
+        _settle(backend, summary)
     except BaseException as exc:
+        stop.abort = False
         summary.error = f"{type(exc).__name__}: {exc}"
-        summary.stop_cause = summary.stop_cause or "error"
+        summary.end(exit_code_of(exc), str(exc))
         if backend.state not in (LifecycleState.UNCONFIGURED, LifecycleState.FAULT):
             backend.fault(summary.error)
-        summary.final_state = f"{backend.state.value}: damping" if backend.state is LifecycleState.FAULT \
-            else backend.state.value
+        _settle(backend, summary)
         raise
     finally:
+        stop.abort = False
         gc.enable()
         gc.unfreeze()
         summary.wall_time = time.perf_counter() - wall_start
@@ -360,16 +463,21 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
             if telemetry is not None:
                 telemetry.close()
                 summary.telemetry_dropped = telemetry.dropped
+            link_report = getattr(backend, "link_report", None)
+            if link_report is not None and backend.state is not LifecycleState.UNCONFIGURED:
+                summary.link = link_report()
             backend.shutdown()
         finally:
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
+            stop.restore()
             relay.__exit__(None, None, None)
+            write_stats(summary, stats_path)  # before printing: nothing may keep the stats from being written
             print(summary.text(), file=sys.stderr if summary.error else sys.stdout, flush=True)
-            if stats_path is not None:
-                stats_path.parent.mkdir(parents=True, exist_ok=True)
-                stats_path.write_text(json.dumps(summary.to_json(), indent=2) + "\n")
     return summary
+
+
+def _settle(backend: Backend, summary: RunSummary) -> None:
+    summary.final_state = f"{backend.state.value}: damping" if backend.state is LifecycleState.FAULT \
+        else backend.state.value
 
 
 def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimator, commands, pinn, telemetry,
@@ -396,88 +504,99 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     recorder_stop = None
     standstill = np.zeros(3)
     command = standstill
-    while stop.cause is None and (n_ticks is None or tick < n_ticks):
-        if realtime:
-            behind = pacer.wait()
-            late = behind > late_ns
-            if late:
-                stats.overrun(behind)
-        t0 = perf()
-        robot = backend.read()
-        t1 = perf()
-        now = backend.clock()  # read once: the age check and the telemetry timeline share it
-        safety.check(robot, now, late)
-        if safety.tripped:
-            break
-        q, qd = robot.joints.q, robot.joints.qd
-        estimator.update(robot)
-        if tick % decimation == 0:
-            command = standstill if commands is None else commands.at(now - clock0)
-            try:
-                a = controller(robot, estimator.estimate(), command)
-            except ModelError as exc:
-                safety.trip(str(exc))
+    a_low, a_high = config.q_lower - TARGET_MARGIN_RAD, config.q_upper + TARGET_MARGIN_RAD
+    try:
+        while stop.cause is None and (n_ticks is None or tick < n_ticks):
+            if realtime:
+                behind = pacer.wait()
+                late = behind > late_ns
+                if late:
+                    stats.overrun(behind)
+            t0 = perf()
+            robot = backend.read()
+            t1 = perf()
+            now = backend.clock()  # read once: the age check and the telemetry timeline share it
+            safety.check(robot, now, late)
+            if safety.tripped:
                 break
-        t2 = perf()
-        tau_star = eq8_torque(a, q, qd, eq8)
-        t3 = perf()
-        if pinn is not None:
-            try:
-                q_hat, qd_hat = pinn.step(q, qd, tau_star)
-            except ModelError as exc:
-                safety.trip(str(exc))
+            q, qd = robot.joints.q, robot.joints.qd
+            estimator.update(robot)
+            if tick % decimation == 0:
+                command = standstill if commands is None else commands.at(now - clock0)
+                try:
+                    a = controller(robot, estimator.estimate(), command)
+                except ModelError as exc:
+                    safety.trip(str(exc))
+                    break
+                if not np.all((a >= a_low) & (a <= a_high)):
+                    i = int(np.argmax(~((a >= a_low) & (a <= a_high))))
+                    safety.trip(f"controller target {a[i]:.4g} rad for {config.joints[i]} outside "
+                                f"joints.position_limits +- {TARGET_MARGIN_RAD} rad")
+                    break
+            t2 = perf()
+            tau_star = eq8_torque(a, q, qd, eq8)
+            t3 = perf()
+            if pinn is not None:
+                try:
+                    q_hat, qd_hat = pinn.step(q, qd, tau_star)
+                except ModelError as exc:
+                    safety.trip(str(exc))
+                    break
+            t4 = perf()
+            tau = tau_star if pinn is None else eq9_torque(tau_star, q_hat, qd_hat, q, qd, eq9)
+            t5 = perf()
+            tau = safety.filter(tau, robot)
+            if safety.tripped:
                 break
-        t4 = perf()
-        tau = tau_star if pinn is None else eq9_torque(tau_star, q_hat, qd_hat, q, qd, eq9)
-        t5 = perf()
-        tau = safety.filter(tau, robot)
-        if safety.tripped:
-            break
-        t6 = perf()
-        backend.write(JointCommand(tau_ff=tau))
-        t7 = perf()
-        if recorder is not None:
-            recorder_stop = recorder(tick, q, qd, tau)
-        if telemetry is not None:
-            elapsed = now - clock0
-            telemetry.append(tick, elapsed, q, qd, q_hat, qd_hat, a, tau_star, tau, (t0 - previous_start) / 1e3,
-                             (t7 - t0) / 1e3, int(safety.state))
-            if poses and tick % pose_every == 0:
-                telemetry.append_pose(tick, elapsed, *backend.body_poses())
-            if len(safety.transitions) > events_sent:
-                for _, text in safety.transitions[events_sent:]:
-                    telemetry.event(tick, elapsed, text, "info")
-                events_sent = len(safety.transitions)
-        t8 = perf()
-        if truth is not None and tick % decimation == TRUTH_PHASE:
-            ground_truth = backend.ground_truth()  # evaluation only (in work, in no section): between policy ticks
-            truth.update(ground_truth)
-            truth.track(ground_truth, now - clock0, command)
-        h_read.add(t1 - t0)
-        h_policy.add(t2 - t1)
-        h_pinn.add(t4 - t3)
-        h_mix.add(t3 - t2 + t5 - t4)
-        h_safety.add(t6 - t5)
-        h_write.add(t7 - t6)
-        h_tel.add(t8 - t7)
-        stats.work.add(perf() - t0)
-        if tick:
-            stats.period.add(t0 - previous_start)
-        previous_start = t0
-        tick += 1
-        stats.ticks = tick
-        if recorder_stop:
-            break
-    stats.late_ticks, stats.skipped_ticks = pacer.late_ticks, pacer.skipped_ticks
+            t6 = perf()
+            backend.write(JointCommand(tau_ff=tau))
+            t7 = perf()
+            if recorder is not None:
+                recorder_stop = recorder(tick, q, qd, tau)
+            if telemetry is not None:
+                elapsed = now - clock0
+                telemetry.append(tick, elapsed, q, qd, q_hat, qd_hat, a, tau_star, tau, (t0 - previous_start) / 1e3,
+                                 (t7 - t0) / 1e3, int(safety.state))
+                if poses and tick % pose_every == 0:
+                    telemetry.append_pose(tick, elapsed, *backend.body_poses())
+                if len(safety.transitions) > events_sent:
+                    for _, text in safety.transitions[events_sent:]:
+                        telemetry.event(tick, elapsed, text, "info")
+                    events_sent = len(safety.transitions)
+            t8 = perf()
+            if truth is not None and tick % decimation == TRUTH_PHASE:
+                ground_truth = backend.ground_truth()  # evaluation only (in work, in no section): between policy ticks
+                truth.update(ground_truth)
+                truth.track(ground_truth, now - clock0, command)
+            h_read.add(t1 - t0)
+            h_policy.add(t2 - t1)
+            h_pinn.add(t4 - t3)
+            h_mix.add(t3 - t2 + t5 - t4)
+            h_safety.add(t6 - t5)
+            h_write.add(t7 - t6)
+            h_tel.add(t8 - t7)
+            stats.work.add(perf() - t0)
+            if tick:
+                stats.period.add(t0 - previous_start)
+            previous_start = t0
+            tick += 1
+            stats.ticks = tick
+            if recorder_stop:
+                break
+    finally:  # a backend error raised from read() still leaves correct counters
+        stats.late_ticks, stats.skipped_ticks = pacer.late_ticks, pacer.skipped_ticks
 
     if stop.cause is not None:
         safety.trip(f"{stop.cause} received")
     if not safety.tripped:
-        summary.stop_cause = recorder_stop or "duration reached"
+        summary.end(ExitCode.OK, recorder_stop or "duration reached")
         if truth is not None:
             truth.update(backend.ground_truth())
         return
-    summary.stop_cause = stop.cause or safety.cause
+    if stop.cause is not None:
+        summary.end(ExitCode.OK, stop.cause)
+    else:
+        summary.end(ExitCode.SAFETY_TRIP, safety.cause)
     if truth is not None:
         truth.update(backend.ground_truth())  # the truth log covers the controlled part of the run
     backend.fault(summary.stop_cause)

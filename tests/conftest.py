@@ -97,3 +97,45 @@ def random_policy_onnx(tmp_path_factory):
     obs_dim = ObservationBuilder(load_config()).size
     return export_mlp_policy_onnx(make_random_policy(obs_dim, 10, seed=3),
                                   tmp_path_factory.mktemp("models") / "policy.onnx", obs_dim, 10)
+
+
+@pytest.fixture(scope="session")
+def constant_policy_onnx(tmp_path_factory):
+    """A policy with the runtime's signature whose action is `values` whatever it observes (NaN and huge ones
+    included): make(values, name) -> path."""
+    from onnx import TensorProto, helper
+
+    from runtime.policy import ObservationBuilder
+
+    obs_dim = ObservationBuilder(load_config()).size
+    folder = tmp_path_factory.mktemp("constant_policies")
+
+    def make(values, name: str) -> Path:
+        values = [float(v) for v in values]
+        zero = helper.make_tensor("w", TensorProto.FLOAT, [obs_dim, len(values)], [0.0] * (obs_dim * len(values)))
+        bias = helper.make_tensor("b", TensorProto.FLOAT, [1, len(values)], values)
+        nodes = [helper.make_node("MatMul", ["obs", "w"], ["z"]), helper.make_node("Add", ["z", "b"], ["action"])]
+        return _onnx_graph(folder / f"{name}.onnx", {"obs": (1, obs_dim)}, {"action": (1, len(values))}, nodes,
+                           [zero, bias])
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def offset_pinn_onnx(tmp_path_factory):
+    """The PINN signature predicting q_next = q + offset, qd_next = qd + offset (state passed through):
+    make(offset, name) -> path."""
+    from onnx import TensorProto, helper
+
+    joint, state = (1, 10), (1, 1, 1)
+    folder = tmp_path_factory.mktemp("offset_pinns")
+
+    def make(offset: float, name: str) -> Path:
+        constants = [helper.make_tensor("offset", TensorProto.FLOAT, [], [float(offset)])]
+        nodes = [helper.make_node("Add", ["q", "offset"], ["q_next"]),
+                 helper.make_node("Add", ["qd", "offset"], ["qd_next"]),
+                 helper.make_node("Identity", ["h"], ["h_next"]), helper.make_node("Identity", ["c"], ["c_next"])]
+        return _onnx_graph(folder / f"{name}.onnx", {"q": joint, "qd": joint, "tau": joint, "h": state, "c": state},
+                           {"q_next": joint, "qd_next": joint, "h_next": state, "c_next": state}, nodes, constants)
+
+    return make
