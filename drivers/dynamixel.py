@@ -27,6 +27,14 @@ Choices where the sources (shared/research/bruce_hw.md section 3) are silent, wr
 * A status packet with the Alert bit (0x80) makes the driver read Hardware Error Status (70) of that servo and raise
   `DeviceFault` with the named flags; a protocol error number (low 7 bits) is raised as `DeviceFault` too.
 * `close()` disables torque (best effort), as BRUCE-OP's run_dxl does on exit.
+* Bus Watchdog (98, RAM, 20 ms units; `watchdog_s`, from `buses.dynamixel.watchdog_s`): a servo with torque on that
+  hears no instruction packet for longer stops (holds where it is) and reads -1 (`BUS_WATCHDOG_ERROR`), its goals
+  read-only until 0 is written, so a killed host or an unplugged bus does not leave the arms on their last goal.
+  `setup()` (torque off) writes 0 (clearing an error a previous run left), then round(watchdog_s / 0.02), and reads
+  it back; with `watchdog_s` 0 (not configured) the register is not touched. `close()` writes 0 after torque off,
+  on the servos whose torque off succeeded (best effort): a servo whose torque could not be turned off keeps its
+  watchdog, so it still stops by itself; with `torque_off_on_close=False` no servo is cleared once torque was on.
+  At 50 Hz the arm loop sends a packet every 20 ms, so any setting well above that is quiet in normal running.
 """
 
 from __future__ import annotations
@@ -80,6 +88,7 @@ ADDR_HARDWARE_ERROR = 70
 ADDR_POSITION_D_GAIN = 80
 ADDR_POSITION_I_GAIN = 82
 ADDR_POSITION_P_GAIN = 84
+ADDR_BUS_WATCHDOG = 98
 ADDR_GOAL_POSITION = 116
 ADDR_PRESENT_VELOCITY = 128
 ADDR_PRESENT_POSITION = 132
@@ -87,6 +96,9 @@ ADDR_INDIRECT_READ = 178          # Indirect Address 6 (168 + 2 * 5)
 ADDR_INDIRECT_DATA_READ = 229     # Indirect Data 6 (224 + 5)
 READ_BLOCK_LENGTH = 8             # present position (4) then present velocity (4)
 OPERATING_MODE_POSITION = 3
+BUS_WATCHDOG_UNIT_S = 0.02        # seconds per count of Bus Watchdog
+BUS_WATCHDOG_MAX = 127            # counts (2.54 s)
+BUS_WATCHDOG_ERROR = -1           # Bus Watchdog reads -1 (0xFF) after it stopped the servo
 
 # -- BRUCE's arms (bruce_hw.md section 3) ----------------------------------------------------------------------
 ARM_IDS = (11, 12, 13, 14, 15, 16)
@@ -329,6 +341,20 @@ def decode_read_block(data: bytes) -> tuple[int, int]:
     return (int.from_bytes(data[0:4], "little", signed=True), int.from_bytes(data[4:8], "little", signed=True))
 
 
+def watchdog_counts(watchdog_s: float) -> int:
+    """Bus Watchdog register value for `watchdog_s` seconds: 0 for 0 (off), else round(watchdog_s / 20 ms), which
+    must be 1..127 (0.02..2.54 s): ValueError otherwise."""
+    seconds = float(watchdog_s)
+    if seconds == 0.0:
+        return 0
+    counts = round(seconds / BUS_WATCHDOG_UNIT_S) if math.isfinite(seconds) else -1
+    if not 1 <= counts <= BUS_WATCHDOG_MAX:
+        raise ValueError(f"watchdog_s: {watchdog_s!r} s is not a Dynamixel Bus Watchdog setting; expected 0 (off) or "
+                         f"{BUS_WATCHDOG_UNIT_S:g}..{BUS_WATCHDOG_MAX * BUS_WATCHDOG_UNIT_S:g} s "
+                         f"(1..{BUS_WATCHDOG_MAX} units of {BUS_WATCHDOG_UNIT_S * 1000:g} ms)")
+    return counts
+
+
 def indirect_read_map() -> bytes:
     """The 16 bytes written at Indirect Address 6..13: the byte addresses of present position, then velocity."""
     addresses = [ADDR_PRESENT_POSITION + i for i in range(4)] + [ADDR_PRESENT_VELOCITY + i for i in range(4)]
@@ -416,7 +442,7 @@ class DynamixelArms:
                  signs: Sequence[float] | None = None, names: Sequence[str] | None = None,
                  lower: Sequence[float] | None = None, upper: Sequence[float] | None = None,
                  hold_pose: Sequence[float] | None = None, latency_ms: float = 2.0, retries: int = 1,
-                 position_p_gain: int = 800, torque_off_on_close: bool = True):
+                 position_p_gain: int = 800, torque_off_on_close: bool = True, watchdog_s: float = 0.0):
         self.port_name = port
         self.baud = int(baud)
         self.ids = tuple(int(i) for i in ids)
@@ -434,12 +460,16 @@ class DynamixelArms:
         self.retries = int(retries)
         self.position_p_gain = int(position_p_gain)
         self.torque_off_on_close = torque_off_on_close
+        self.watchdog_s = float(watchdog_s)
+        self.watchdog_counts = watchdog_counts(watchdog_s)   # Bus Watchdog value set up (0: not configured)
         self.bus = f"dynamixel {port}"
         self.stats = LinkStats()
         self.models: dict[int, int] = {}
         self.faults: dict[int, tuple[str, ...]] = {}
         self.torque_enabled = False
         self._torque_touched = False       # some servo may have torque on: close() turns it off
+        self._torque_failed: tuple[int, ...] = ()   # IDs whose last torque enable / off failed
+        self._watchdog_touched = False     # Bus Watchdog was written: close() writes 0
         self.stamp = 0.0                   # time.monotonic() of the last good read
         self._port: Any = None
         self._ph: Any = None
@@ -468,8 +498,10 @@ class DynamixelArms:
 
     @classmethod
     def from_config(cls, config: Any, port: str | None = None, **options) -> DynamixelArms:
-        """`open` with `buses.dynamixel` and `arms` of a `bruce_hw.config.RobotConfig`."""
+        """`open` with `buses.dynamixel` (watchdog_s included, unless given) and `arms` of a
+        `bruce_hw.config.RobotConfig`."""
         bus, arms = config.buses.dynamixel, config.arms
+        options.setdefault("watchdog_s", getattr(bus, "watchdog_s", 0.0))
         return cls.open(port or bus.port, bus.baud, bus.ids, names=arms.names, lower=arms.lower, upper=arms.upper,
                         hold_pose=arms.hold_pose, **options)
 
@@ -495,13 +527,26 @@ class DynamixelArms:
             self._sync_write.addParam(dxl_id, [0, 0, 0, 0])
 
     def close(self) -> None:
+        """Torque off (if it was ever on and `torque_off_on_close`), then Bus Watchdog 0 on the servos known to be
+        torque-off (if setup wrote it), then the port closed. Best effort: errors are swallowed."""
         if self._port is None:
             return
         try:
-            if self.torque_off_on_close and self._torque_touched:
-                self.disable_torque()
-        except DriverError:
-            pass  # closing anyway: the bus may be the reason we are closing
+            off: list[int] = list(self.ids)     # the servos known to be torque-off
+            if self._torque_touched:
+                off = []
+                if self.torque_off_on_close:
+                    try:
+                        self.disable_torque()
+                    except DriverError:
+                        pass  # closing anyway: the bus may be the reason we are closing
+                    off = [i for i in self.ids if i not in self._torque_failed]
+            if self._watchdog_touched and off:
+                # Never leave a servo with torque on and no watchdog: only the torque-off ones are cleared.
+                try:
+                    self.clear_watchdog(off)
+                except DriverError:
+                    pass
         finally:
             try:
                 self._port.closePort()
@@ -592,11 +637,62 @@ class DynamixelArms:
             self._checked("position D gain", dxl_id, self._ph.write2ByteTxRx, ADDR_POSITION_D_GAIN, 0)
             self._checked("indirect addresses", dxl_id, self._ph.writeTxRx, ADDR_INDIRECT_READ, len(block), block)
         self.torque_enabled = False
+        if self.watchdog_counts:
+            self.configure_watchdog()
+
+    # -- Bus Watchdog ------------------------------------------------------------------------------------------
+    def _write_watchdog(self, dxl_id: int, value: int, alert_ok: bool = False) -> None:
+        try:
+            self._checked(f"write Bus Watchdog (98) = {value}", dxl_id, self._ph.write1ByteTxRx, ADDR_BUS_WATCHDOG,
+                          value & 0xFF, alert_ok=alert_ok)
+        except DeviceFault as exc:
+            flags = (*exc.flags, f"on write of Bus Watchdog (98) = {value}")
+            self.faults[dxl_id] = flags
+            raise DeviceFault(self.bus, dxl_id, flags) from exc
+
+    def configure_watchdog(self) -> None:
+        """Bus Watchdog = `watchdog_counts` on every servo: 0 first (clears a Bus Watchdog Error, e.g. one a killed
+        previous run left), then the value, then read back: DeviceFault naming the servo and the register if it
+        reads back otherwise. `setup()` calls it when `watchdog_s` > 0; it may be called again (torque on or off) to
+        re-arm the watchdog after an error."""
+        self._watchdog_touched = True
+        for dxl_id in self.ids:
+            self._write_watchdog(dxl_id, 0)
+            if self.watchdog_counts:
+                self._write_watchdog(dxl_id, self.watchdog_counts)
+        for dxl_id, value in self.read_watchdog().items():
+            if value != self.watchdog_counts:
+                flags = (f"Bus Watchdog (98) reads back {value}, expected {self.watchdog_counts}",)
+                self.faults[dxl_id] = flags
+                raise DeviceFault(self.bus, dxl_id, flags)
+
+    def read_watchdog(self) -> dict[int, int]:
+        """Bus Watchdog (98) of every servo, {ID: value} as a signed byte: 0 off, 1..127 armed (units of
+        `BUS_WATCHDOG_UNIT_S`), -1 (`BUS_WATCHDOG_ERROR`) the watchdog stopped that servo."""
+        values = {}
+        for dxl_id in self.ids:
+            raw = int(self._checked("read Bus Watchdog (98)", dxl_id, self._ph.read1ByteTxRx, ADDR_BUS_WATCHDOG,
+                                    alert_ok=True))
+            values[dxl_id] = raw - 256 if raw & 0x80 else raw
+        return values
+
+    def clear_watchdog(self, ids: Sequence[int] | None = None) -> None:
+        """Bus Watchdog 0 on `ids` (default: every servo): the watchdog off and a Bus Watchdog Error cleared. Every
+        servo is tried (a hardware error alert does not stop it), then the first failure is raised."""
+        failures: list[DriverError] = []
+        for dxl_id in self.ids if ids is None else ids:
+            try:
+                self._write_watchdog(int(dxl_id), 0, alert_ok=True)
+            except DriverError as exc:
+                failures.append(exc)
+        if failures:
+            raise failures[0]
 
     def _set_torque(self, on: bool) -> None:
         """Every servo is tried, then the first failure is raised. Turning torque off succeeds on a servo that
         reports a hardware error (its write is still carried out)."""
         failures: list[DriverError] = []
+        failed_ids: list[int] = []
         self._torque_touched |= on
         for dxl_id in self.ids:
             try:
@@ -604,6 +700,8 @@ class DynamixelArms:
                               ADDR_TORQUE_ENABLE, int(on), alert_ok=not on)
             except DriverError as exc:
                 failures.append(exc)
+                failed_ids.append(dxl_id)
+        self._torque_failed = tuple(failed_ids)
         self.torque_enabled = on and not failures
         if failures:
             silent = [i for exc in failures if isinstance(exc, BusTimeout) for i in exc.silent_ids]

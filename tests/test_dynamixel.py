@@ -4,6 +4,7 @@ and the `DynamixelArms` driver against the emulator (silence, hardware errors, c
 from __future__ import annotations
 
 import math
+import threading
 import time
 
 import numpy as np
@@ -14,6 +15,7 @@ from hypothesis import strategies as st
 from drivers.dynamixel import (
     ARM_IDS,
     ARM_SIGNS,
+    BUS_WATCHDOG_UNIT_S,
     ERR_ACCESS,
     ERR_CRC,
     ERR_DATA_LENGTH,
@@ -37,8 +39,9 @@ from drivers.dynamixel import (
     joint_to_counts,
     stuff,
     unstuff,
+    watchdog_counts,
 )
-from drivers.emulators.dynamixel import XM430_W350, DynamixelBusEmulator
+from drivers.emulators.dynamixel import MAX_EVENTS, XM430_W350, DynamixelBusEmulator
 from drivers.errors import BusTimeout, DeviceFault, LinkStats
 
 sdk = pytest.importorskip("dynamixel_sdk")
@@ -441,12 +444,17 @@ def test_goals_are_clipped_and_checked(emu, arms):
 
 
 def test_from_config(emu, config):
+    counts = watchdog_counts(config.buses.dynamixel.watchdog_s)
     with DynamixelArms.from_config(config, port=emu.path, latency_ms=10.0) as driver:
         assert driver.names == config.arms.names and driver.ids == config.buses.dynamixel.ids
+        assert driver.watchdog_counts == counts and driver.read_watchdog() == {i: counts for i in driver.ids}
         driver.hold(ramp_s=0.06, rate_hz=50)
         driver.read()
         assert np.allclose(emu.goal_joint_positions(), config.arms.hold_pose, atol=POSITION_UNIT)
-    assert not emu.torque_enabled_all().any()      # close() turned torque off
+    assert not emu.torque_enabled_all().any()      # close() turned torque off ...
+    assert all(emu.item(i, "bus_watchdog") == 0 for i in config.buses.dynamixel.ids)   # ... and the watchdog off
+    with DynamixelArms.from_config(config, port=emu.path, latency_ms=10.0, watchdog_s=0.0) as driver:
+        assert driver.watchdog_counts == 0          # an explicit option wins over the config
 
 
 def test_default_sync_read_timeout_is_short():
@@ -509,3 +517,242 @@ def test_noise_before_replies_is_skipped(emu, arms):
     emu.corrupt_replies(None, "noise", count=2)
     q, qd = arms.read()
     assert np.allclose(q, 0.0, atol=POSITION_UNIT)
+
+
+# -- Bus Watchdog (control table 98) -------------------------------------------------------------------------------
+WATCHDOG_SLACK_S = 0.030      # expiry noticed within this of its time by a physics adapter polling every 1 ms
+
+
+def poll_like_a_plant(emu, until: str, timeout: float = 2.0):
+    """Touch the emulator every ~1 ms as a physics adapter does, until an event containing `until` (or timeout):
+    (events drained, [(start, end) of each poll])."""
+    events, polls = [], []
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        start = time.monotonic()
+        emu.torque_enabled_all()
+        events += emu.drain_events()
+        polls.append((start, time.monotonic()))
+        if any(until in text for _, text in events):
+            break
+        time.sleep(0.001)
+    return events, polls
+
+
+def stamp_of(events, text: str) -> float:
+    stamps = [t for t, e in events if e == text]
+    assert len(stamps) == 1, (text, events)
+    return stamps[0]
+
+
+def expiry(events, dxl_id: int) -> tuple[float, str]:
+    found = [(t, e) for t, e in events if e.startswith(f"dynamixel {dxl_id} bus watchdog: stopped after ")]
+    assert len(found) == 1, events
+    return found[0]
+
+
+def assert_expiry_timing(events, polls, last_packet: float, configured_s: float, expired: float) -> None:
+    """Strictly after its time; noticed by the first poll after its time, and within WATCHDOG_SLACK_S of it unless the
+    test's own polling was late (a loaded machine) by more."""
+    late_polls = [p for p in polls if p[1] > last_packet + configured_s]
+    assert late_polls, "no poll after the watchdog's time"
+    first_start, first_end = late_polls[0]
+    assert expired - last_packet > configured_s
+    assert expired <= first_end
+    poller_lateness = max(0.0, first_start - (last_packet + configured_s) - 0.001)
+    assert expired - last_packet <= configured_s + WATCHDOG_SLACK_S + poller_lateness
+
+
+def test_watchdog_stops_a_torque_on_servo_after_its_time_without_packets(emu, port):
+    handler, ph = port
+    emu.track_goals = False                                          # a physics adapter: present is measured
+    emu.set_present(11, 1500)
+    assert ph.write1ByteTxRx(handler, 11, 64, 1) == (sdk.COMM_SUCCESS, 0)            # torque on: goal 1500
+    assert ph.write4ByteTxRx(handler, 11, 116, 2500) == (sdk.COMM_SUCCESS, 0)        # moving towards 2500
+    assert ph.write1ByteTxRx(handler, 11, 98, 2) == (sdk.COMM_SUCCESS, 0)            # 40 ms; the last packet
+    events, polls = poll_like_a_plant(emu, "bus watchdog: stopped")
+    last_packet = stamp_of(events, "dynamixel 11 bus watchdog 2 (40 ms)")
+    expired, text = expiry(events, 11)
+    assert_expiry_timing(events, polls, last_packet, 0.040, expired)
+    silent_ms = int(text.split("after ")[1].split(" ms")[0])
+    assert silent_ms >= 40
+    # Stopped: torque still on, holding where it is (goal := present, which a physics adapter sees), Bus Watchdog -1.
+    assert emu.torque_enabled(11) and emu.goal_position(11) == 1500 == emu.item(11, "present_position")
+    assert emu.item(11, "bus_watchdog") == -1
+    assert ph.read1ByteTxRx(handler, 11, 98) == (0xFF, sdk.COMM_SUCCESS, 0)
+    assert not [e for _, e in events if "stopped" in e and not e.startswith("dynamixel 11 ")]   # torque off: no
+
+
+def test_watchdog_is_quiet_while_packets_keep_coming_from_any_id(emu, port):
+    handler, ph = port
+    for dxl_id in (11, 12):
+        assert ph.write1ByteTxRx(handler, dxl_id, 64, 1) == (sdk.COMM_SUCCESS, 0)
+        assert ph.write1ByteTxRx(handler, dxl_id, 98, 10) == (sdk.COMM_SUCCESS, 0)   # 200 ms
+    emu.silence([12])                    # unplugged: 12 hears nothing from here on
+    emu.drain_events()
+    last = time.monotonic()
+    while time.monotonic() - last < 0.6:                             # 3 watchdog periods of traffic to servo 13 only
+        assert ph.ping(handler, 13)[1] == sdk.COMM_SUCCESS
+        assert emu.item(11, "bus_watchdog") == 10
+        time.sleep(0.01)
+    assert emu.item(11, "bus_watchdog") == 10 and emu.torque_enabled(11)   # any packet on the bus counts ...
+    assert emu.item(12, "bus_watchdog") == -1                              # ... but not for an unplugged servo
+    events = emu.drain_events()
+    assert [e for _, e in events if "stopped" in e] == [expiry(events, 12)[1]]
+    # Torque off: not monitored, however long the silence.
+    assert ph.write1ByteTxRx(handler, 11, 64, 0) == (sdk.COMM_SUCCESS, 0)
+    time.sleep(0.25)
+    assert emu.item(11, "bus_watchdog") == 10 and not emu.drain_events()[1:]   # only "torque off"
+    # Torque on again: the timer starts at that packet, and the host now stays silent.
+    assert ph.write1ByteTxRx(handler, 11, 64, 1) == (sdk.COMM_SUCCESS, 0)
+    events, polls = poll_like_a_plant(emu, "dynamixel 11 bus watchdog: stopped")
+    assert_expiry_timing(events, polls, stamp_of(events, "dynamixel 11 torque on"), 0.200, expiry(events, 11)[0])
+
+
+def test_goal_writes_are_refused_in_watchdog_error_until_it_is_cleared(emu, port):
+    handler, ph = port
+    assert ph.write1ByteTxRx(handler, 14, 64, 1) == (sdk.COMM_SUCCESS, 0)
+    assert ph.write4ByteTxRx(handler, 14, 116, 1000) == (sdk.COMM_SUCCESS, 0)
+    for raw in (0x80, 0xFE, 128):                                    # -128, -2, 128 (2 bytes): outside -1..127
+        assert ph.write1ByteTxRx(handler, 14, 98, raw)[1] == ERR_DATA_RANGE
+    assert ph.write2ByteTxRx(handler, 14, 98, 128)[1] == ERR_ACCESS   # 99 is a reserved gap
+    assert ph.write1ByteTxRx(handler, 14, 98, 2) == (sdk.COMM_SUCCESS, 0)
+    time.sleep(0.1)                      # silent for 100 ms: the next packet finds it expired (checked before it)
+    goals = {100: (2, 300), 102: (2, 500), 104: (4, 50), 116: (4, 2000)}   # goal PWM, current, velocity, position
+    before = {name: emu.item(14, name) for name in ("goal_pwm", "goal_current", "goal_velocity", "goal_position")}
+    writes = {1: ph.write1ByteTxRx, 2: ph.write2ByteTxRx, 4: ph.write4ByteTxRx}
+    for address, (size, value) in goals.items():
+        assert writes[size](handler, 14, address, value) == (sdk.COMM_SUCCESS, ERR_DATA_RANGE), address
+    assert emu.item(14, "bus_watchdog") == -1
+    assert ph.write2ByteTxRx(handler, 14, 168, 116) == (sdk.COMM_SUCCESS, 0)   # Indirect Address 1 -> goal position
+    assert ph.write1ByteTxRx(handler, 14, 224, 7)[1] == ERR_DATA_RANGE          # ... refused through it too
+    writer = sdk.GroupSyncWrite(handler, ph, 116, 4)
+    assert writer.addParam(14, list((3000).to_bytes(4, "little"))) and writer.txPacket() == sdk.COMM_SUCCESS
+    assert ph.write1ByteTxRx(handler, 14, 98, 5)[1] == ERR_DATA_RANGE          # only 0 clears the error
+    assert ph.write1ByteTxRx(handler, 14, 65, 1) == (sdk.COMM_SUCCESS, 0)      # other items still writable
+    assert {name: emu.item(14, name) for name in before} == before and emu.item(14, "bus_watchdog") == -1
+    assert ph.write1ByteTxRx(handler, 14, 98, 0) == (sdk.COMM_SUCCESS, 0)      # cleared
+    assert ph.read1ByteTxRx(handler, 14, 98) == (0, sdk.COMM_SUCCESS, 0)
+    for address, (size, value) in goals.items():
+        assert writes[size](handler, 14, address, value) == (sdk.COMM_SUCCESS, 0), address
+    assert emu.item(14, "goal_position") == 2000 and emu.torque_enabled(14)
+    texts = [e for _, e in emu.drain_events()]
+    assert texts[-2:] == ["dynamixel 14 bus watchdog: stopped after " + texts[-2].split("after ")[1],
+                          "dynamixel 14 bus watchdog 0 (off, error cleared)"]
+    # A host's -1 is the error too; REBOOT (RAM to initial values) clears it.
+    assert ph.write1ByteTxRx(handler, 14, 98, 0xFF) == (sdk.COMM_SUCCESS, 0)
+    assert ph.write4ByteTxRx(handler, 14, 116, 2100)[1] == ERR_DATA_RANGE
+    assert ph.reboot(handler, 14) == (sdk.COMM_SUCCESS, 0)
+    assert emu.item(14, "bus_watchdog") == 0 and not emu.torque_enabled(14)
+    assert [e for _, e in emu.drain_events()] == [
+        "dynamixel 14 bus watchdog -1 (error written by the host: stopped)", "dynamixel 14 torque off",
+        "dynamixel 14 bus watchdog 0 (off, reboot, error cleared)"]
+
+
+def test_driver_writes_reads_back_and_clears_the_watchdog(emu):
+    with raw_port(emu.path) as ser:                  # a previous run left servo 13 in Bus Watchdog Error
+        ser.write(encode_packet(13, 0x03, bytes([98, 0, 0xFF])))
+        read_packets(ser)
+    assert emu.item(13, "bus_watchdog") == -1
+    emu.drain_events()
+    with DynamixelArms.open(emu.path, latency_ms=10.0, hold_pose=HOLD, watchdog_s=0.2) as arms:
+        assert arms.watchdog_counts == 10
+        assert arms.read_watchdog() == {i: 10 for i in ARM_IDS}
+        assert all(emu.item(i, "bus_watchdog") == 10 for i in ARM_IDS)
+        texts = [e for _, e in emu.drain_events()]
+        assert texts[:2] == ["dynamixel 11 bus watchdog 0 (off)", "dynamixel 11 bus watchdog 10 (200 ms)"]
+        assert "dynamixel 13 bus watchdog 0 (off, error cleared)" in texts
+        arms.hold()
+        for _ in range(10):                          # a 50 Hz loop: about 20 ms between packets
+            arms.read()
+            arms.write_positions(HOLD)
+            time.sleep(0.02)
+        assert arms.read_watchdog() == {i: 10 for i in ARM_IDS}
+    assert not emu.torque_enabled_all().any() and all(emu.item(i, "bus_watchdog") == 0 for i in ARM_IDS)
+    texts = [e for _, e in emu.drain_events()]
+    assert [e for e in texts if "torque" in e] == [f"dynamixel {i} torque {s}" for s in ("on", "off") for i in ARM_IDS]
+    assert texts.index("dynamixel 16 torque off") < texts.index("dynamixel 11 bus watchdog 0 (off)")  # off first
+    assert not [e for e in texts if "stopped" in e]
+
+
+def test_driver_close_keeps_the_watchdog_of_a_servo_it_could_not_turn_off(emu):
+    arms = DynamixelArms.open(emu.path, latency_ms=5.0, hold_pose=HOLD, watchdog_s=0.04)
+    arms.hold()
+    emu.silence([12])                                # unplugged: its torque cannot be turned off
+    arms.close()
+    assert emu.torque_enabled(12) and emu.item(12, "bus_watchdog") in (2, -1)
+    assert all(emu.item(i, "bus_watchdog") == 0 and not emu.torque_enabled(i) for i in ARM_IDS if i != 12)
+    events, _ = poll_like_a_plant(emu, "dynamixel 12 bus watchdog: stopped")
+    assert expiry(events, 12) and emu.item(12, "bus_watchdog") == -1    # it stops by itself
+    # torque_off_on_close=False: the servos stay on, so their watchdog stays armed.
+    emu.clear_faults()
+    with DynamixelArms.open(emu.path, latency_ms=5.0, hold_pose=HOLD, watchdog_s=0.04,
+                            torque_off_on_close=False) as arms:
+        arms.hold()
+    assert emu.torque_enabled_all().all() and all(emu.item(i, "bus_watchdog") in (2, -1) for i in ARM_IDS)
+
+
+def test_driver_read_back_and_write_failures_name_the_servo_and_register(emu, monkeypatch):
+    servo = emu.servos[ARM_IDS.index(14)]
+    write = servo.write
+    monkeypatch.setattr(servo, "write", lambda address, data: 0 if address == 98 else write(address, data))
+    with pytest.raises(DeviceFault) as caught:       # servo 14 acknowledges but ignores the write
+        DynamixelArms.open(emu.path, latency_ms=10.0, watchdog_s=0.4)
+    assert caught.value.device_id == 14 and "Bus Watchdog (98) reads back 0, expected 20" in str(caught.value)
+    monkeypatch.setattr(servo, "write", lambda address, data: ERR_ACCESS if address == 98 else write(address, data))
+    with pytest.raises(DeviceFault) as caught:       # e.g. a firmware without the item
+        DynamixelArms.open(emu.path, latency_ms=10.0, watchdog_s=0.4)
+    assert caught.value.device_id == 14 and "access error" in caught.value.flags
+    assert "Bus Watchdog (98)" in str(caught.value)
+
+
+@pytest.mark.parametrize("seconds, counts", [(0.0, 0), (0.02, 1), (0.4, 20), (0.41, 20), (2.54, 127)])
+def test_watchdog_seconds_to_counts(seconds, counts):
+    assert watchdog_counts(seconds) == counts
+    assert DynamixelArms("/dev/null", watchdog_s=seconds).watchdog_counts == counts
+    assert counts * BUS_WATCHDOG_UNIT_S == pytest.approx(round(seconds / 0.02) * 0.02)
+
+
+@pytest.mark.parametrize("seconds", [0.005, 2.6, -0.02, float("nan"), float("inf")])
+def test_watchdog_outside_its_range_is_refused(seconds):
+    with pytest.raises(ValueError, match="watchdog_s"):
+        DynamixelArms("/dev/null", watchdog_s=seconds)
+
+
+def test_event_log_records_torque_changes_bounded_and_thread_safe():
+    bus = DynamixelBusEmulator()                     # no pty: bytes in, bytes out
+
+    def torque(on: int) -> bytes:                    # SYNC_WRITE of Torque Enable to every servo
+        return encode_packet(0xFE, 0x83, bytes([64, 0, 1, 0]) + b"".join(bytes([i, on]) for i in ARM_IDS))
+
+    bus.handle(torque(1))
+    bus.handle(torque(1))                            # no change: no event
+    bus.set_hardware_error(13, ["overheating"])      # shut down by its Shutdown bits
+    events = bus.drain_events()
+    assert [e for _, e in events] == [f"dynamixel {i} torque on" for i in ARM_IDS] + ["dynamixel 13 torque off"]
+    stamps = [t for t, _ in events]
+    assert stamps == sorted(stamps)
+    assert bus.drain_events() == []                  # since the last drain
+    # Thread-safe: a drainer racing the producer loses and duplicates nothing.
+    drained: list = []
+    stop = threading.Event()
+
+    def drain():
+        while not stop.is_set():
+            drained.extend(bus.drain_events())
+
+    thread = threading.Thread(target=drain)
+    thread.start()
+    for k in range(300):
+        bus.handle(torque(k % 2))
+    stop.set()
+    thread.join()
+    drained += bus.drain_events()
+    expected = [f"dynamixel {i} torque {'on' if k % 2 else 'off'}" for k in range(300) for i in ARM_IDS if i != 13]
+    assert [e for _, e in drained] == expected       # 13 stays off: its hardware error refuses torque on
+    # Bounded: the newest MAX_EVENTS kept, the older ones counted.
+    for k in range(MAX_EVENTS // 5 + 1):             # 5 events a packet (13 stays off), starting with torque off
+        bus.handle(torque(k % 2))
+    events = bus.drain_events()
+    assert len(events) == MAX_EVENTS and events[-1][1] == "dynamixel 16 torque off"
+    assert events[0][1] == "dynamixel 11 torque on" and bus.events_dropped == 5   # the first packet's

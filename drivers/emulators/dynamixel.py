@@ -28,6 +28,38 @@ Choices where the sources are silent (BRUCE's exact model is not stated anywhere
 * Without a physics adapter (`track_goals=True`) present position jumps to the goal while torque is on, so the bus
   behaves as ideal servos; a physics adapter constructs with `track_goals=False` and writes present values itself.
 
+Bus Watchdog (item 98, 1 byte, RAM, signed): 0 off (writing 0 also clears a Bus Watchdog Error), 1..127 armed in
+units of 20 ms, -1 (reads 0xFF) Bus Watchdog Error. A host write outside -1..127 is refused with Data Range Error.
+
+* What counts as a packet: every valid instruction packet that reaches the bus (CRC good, any instruction code, any
+  ID, broadcast or not, including packets for other servos and unknown instructions), since each servo sees all
+  traffic. Bytes with a bad CRC, cut-short packets and status packets (0x55) of other devices do not count. A
+  servo that is `silence`d is unplugged: it hears nothing, so its watchdog runs out like a dropped bus.
+* It runs while Torque Enable is 1 and the value is 1..127: when more than value x 20 ms have passed since the last
+  packet the servo heard, it stops and Bus Watchdog becomes -1. "Stops" here: torque stays on and the servo holds
+  where it is: in the position modes (3, 4, 5) goal position := present position (so a physics adapter reading
+  `goal_joint_positions` sees it hold); in velocity mode (1) goal velocity := 0; in current mode (0) goal current
+  := 0; in PWM mode (16) goal PWM := 0.
+* While in the error, writes that touch Goal PWM (100), Goal Current (102), Goal Velocity (104) or Goal Position
+  (116), directly, through Indirect Data, or in SYNC_/BULK_WRITE, are refused with Data Range Error (nothing is
+  written; SYNC_/BULK_WRITE have no status, so they are dropped silently). Writing 0 clears the error; writing
+  1..127 while in the error is refused with Data Range Error (only 0 clears it, as the manual says; our choice
+  where it is silent). A host write of -1 is accepted and puts the servo in the error, stopped, as an expiry
+  would. REBOOT / FACTORY_RESET set RAM back to its initial values, which clears the error.
+* Time is checked lazily, whenever the emulator is touched: on every chunk of bytes received (before its packets
+  count as heard) and in every accessor (`goal_position`, `goal_joint_positions`, `torque_enabled`,
+  `torque_enabled_all`, `set_present`, `set_joint_state`, `item`, `drain_events`, the fault setters) and
+  `check_watchdogs()`. A silent host is noticed by the next poll of a physics adapter; the state anyone observes
+  is always up to date, and the expiry's event stamp is the moment it was detected.
+
+Event log (`drain_events()`: (time.monotonic() stamp, text) since the last drain, thread-safe, the newest
+`MAX_EVENTS` kept): every change of a servo's Torque Enable ("dynamixel 11 torque on" / "... torque off", whatever
+the cause: a write, REBOOT, a hardware error shutdown), every accepted write of Bus Watchdog ("dynamixel 11 bus
+watchdog 20 (400 ms)", "... bus watchdog 0 (off)", "... 0 (off, error cleared)"), a reboot's reset of an armed or
+tripped watchdog, and an expiry ("dynamixel 11 bus watchdog: stopped after 402 ms without a packet"). A packet's
+events carry the time its bytes were received; an expiry, the time it was detected. Events pushed out of a full
+log are counted in `events_dropped`.
+
 Thread-safe accessors for a physics adapter (every 1 ms): `set_present`, `set_joint_state`, `goal_position`,
 `goal_joint_positions`, `torque_enabled`, `torque_enabled_all`. Faults for tests: `silence`, `set_hardware_error`,
 `corrupt_replies`, `clear_faults`.
@@ -38,6 +70,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -47,6 +80,9 @@ from drivers.dynamixel import (
     ARM_IDS,
     ARM_SIGNS,
     BROADCAST_ID,
+    BUS_WATCHDOG_ERROR,
+    BUS_WATCHDOG_MAX,
+    BUS_WATCHDOG_UNIT_S,
     ERR_ACCESS,
     ERR_CRC,
     ERR_DATA_LENGTH,
@@ -84,6 +120,8 @@ XM430_W350 = 1020
 FIRMWARE_VERSION = 52
 TABLE_SIZE = 662
 EEPROM_END = 64
+MAX_EVENTS = 10_000                # the event log keeps the newest this many
+GOAL_ITEMS = frozenset({"goal_pwm", "goal_current", "goal_velocity", "goal_position"})   # read-only in watchdog error
 
 
 @dataclass(frozen=True, slots=True)
@@ -138,7 +176,7 @@ def _items(model_number: int, firmware: int) -> list[Item]:
         Item(84, 2, "position_p_gain", True, 800, valid=gain),
         Item(88, 2, "feedforward_2nd_gain", True, 0, valid=gain),
         Item(90, 2, "feedforward_1st_gain", True, 0, valid=gain),
-        Item(98, 1, "bus_watchdog", True, 0),
+        Item(98, 1, "bus_watchdog", True, 0, signed=True, valid=(BUS_WATCHDOG_ERROR, BUS_WATCHDOG_MAX)),
         Item(100, 2, "goal_pwm", True, 885, signed=True),
         Item(102, 2, "goal_current", True, 1193, signed=True),
         Item(104, 4, "goal_velocity", True, 0, signed=True),
@@ -184,6 +222,9 @@ class XSeriesServo:
         self._registered: tuple[int, bytes] | None = None
         self._reset(keep=())
         self._put("id", dxl_id)
+        self.last_rx = time.monotonic()    # when this servo last heard an instruction packet (Bus Watchdog)
+        self.notes: list[str] = []         # event texts not yet taken by the bus (see take_notes)
+        self._torque_seen = self.torque
 
     # -- raw access --------------------------------------------------------------------------------------------
     def get(self, name: str, table: bytearray | None = None) -> int:
@@ -208,6 +249,10 @@ class XSeriesServo:
     @property
     def alert(self) -> int:
         return ERROR_ALERT if self.table[70] else 0
+
+    @property
+    def watchdog_error(self) -> bool:
+        return self.get("bus_watchdog") == BUS_WATCHDOG_ERROR
 
     def _reset(self, keep: Iterable[str]) -> None:
         kept = {name: self.get(name) for name in keep}
@@ -234,44 +279,109 @@ class XSeriesServo:
 
     def check_write(self, address: int, data: bytes) -> tuple[int, bytearray | None]:
         """(error number, the table after the write) without changing anything."""
+        error, new, _ = self._check_write(address, data)
+        return error, new
+
+    def _check_write(self, address: int, data: bytes) -> tuple[int, bytearray | None, set[str]]:
+        """(error number, the table after the write or None, the names of the items the write touches)."""
         if not data:
-            return ERR_DATA_LENGTH, None
+            return ERR_DATA_LENGTH, None, set()
         if address + len(data) > TABLE_SIZE:
-            return ERR_ACCESS, None
+            return ERR_ACCESS, None, set()
         new = bytearray(self.table)
         touched: set[str] = set()
         for offset, byte in enumerate(data):
             target = self._target(address + offset)
             item = self.owner[target] if 0 <= target < TABLE_SIZE else None
             if item is None or not item.writable or (item.eeprom and self.torque):
-                return ERR_ACCESS, None
+                return ERR_ACCESS, None, touched
             new[target] = byte
             touched.add(item.name)
         for name in touched:
             valid, value = self.items[name].valid, self.get(name, new)
             if isinstance(valid, tuple) and not valid[0] <= value <= valid[1] or \
                     isinstance(valid, frozenset) and value not in valid:
-                return ERR_DATA_RANGE, None
+                return ERR_DATA_RANGE, None, touched
+        if self.watchdog_error:
+            # Bus Watchdog Error: the goals are read-only, and only 0 (or -1 again) may be written to Bus Watchdog.
+            if touched & GOAL_ITEMS or ("bus_watchdog" in touched and self.get("bus_watchdog", new) > 0):
+                return ERR_DATA_RANGE, None, touched
         if "goal_position" in touched and self.get("operating_mode", new) == 3:
             goal = self.get("goal_position", new)
             if not self.get("min_position_limit", new) <= goal <= self.get("max_position_limit", new):
-                return ERR_DATA_LIMIT, None
+                return ERR_DATA_LIMIT, None, touched
         if "torque_enable" in touched and new[64] and not self.torque and self.table[70] & self.table[63]:
-            return ERR_RESULT_FAIL, None
-        return 0, new
+            return ERR_RESULT_FAIL, None, touched
+        return 0, new, touched
 
     def write(self, address: int, data: bytes) -> int:
-        error, new = self.check_write(address, data)
+        error, new, touched = self._check_write(address, data)
         if error:
             return error
         torque_on = new[64] and not self.torque
+        was_error = self.watchdog_error
         self.table[:] = new
         if torque_on:
             self._put("goal_position", self.get("present_position"))
+        if "bus_watchdog" in touched:
+            self._watchdog_written(was_error)
         if self.track_goals and self.torque:
             self._put("present_position", self.get("goal_position"))
             self._put("present_velocity", 0)
         return 0
+
+    # -- Bus Watchdog ------------------------------------------------------------------------------------------
+    def _watchdog_written(self, was_error: bool) -> None:
+        value = self.get("bus_watchdog")
+        if value == BUS_WATCHDOG_ERROR:
+            if not was_error:
+                self._stop()
+            self.notes.append(f"dynamixel {self.id} bus watchdog -1 (error written by the host"
+                              f"{', already in it' if was_error else ': stopped'})")
+        elif value == 0:
+            self.notes.append(f"dynamixel {self.id} bus watchdog 0 (off{', error cleared' if was_error else ''})")
+        else:
+            self.notes.append(f"dynamixel {self.id} bus watchdog {value} "
+                              f"({round(value * BUS_WATCHDOG_UNIT_S * 1000)} ms)")
+
+    def heard(self, now: float) -> None:
+        """A valid instruction packet reached this servo (whatever its ID)."""
+        self.last_rx = now
+
+    def check_watchdog(self, now: float) -> bool:
+        """Bus Watchdog armed, torque on and more than its time since the last packet: stop, Bus Watchdog := -1.
+        True when it expired now."""
+        value = self.get("bus_watchdog")
+        silent_s = now - self.last_rx
+        if value <= 0 or not self.torque or silent_s <= value * BUS_WATCHDOG_UNIT_S:
+            return False
+        self._stop()
+        self._put("bus_watchdog", BUS_WATCHDOG_ERROR)
+        self.notes.append(f"dynamixel {self.id} bus watchdog: stopped after {round(silent_s * 1000)} ms "
+                          f"without a packet")
+        return True
+
+    def _stop(self) -> None:
+        """The servo stops where it is (torque stays as it is): the goal of its operating mode := hold."""
+        mode = self.get("operating_mode")
+        if mode in (3, 4, 5):
+            self._put("goal_position", self.get("present_position"))
+        elif mode == 1:
+            self._put("goal_velocity", 0)
+        elif mode == 0:
+            self._put("goal_current", 0)
+        elif mode == 16:
+            self._put("goal_pwm", 0)
+        if self.track_goals:
+            self._put("present_velocity", 0)
+
+    def take_notes(self) -> list[str]:
+        """Event texts since the last call, a change of Torque Enable included (whatever changed it)."""
+        if self.torque != self._torque_seen:
+            self._torque_seen = self.torque
+            self.notes.append(f"dynamixel {self.id} torque {'on' if self.torque else 'off'}")
+        notes, self.notes = self.notes, []
+        return notes
 
     def reg_write(self, address: int, data: bytes) -> int:
         error, _ = self.check_write(address, data)
@@ -289,12 +399,26 @@ class XSeriesServo:
         return self.write(address, data)
 
     def reboot(self) -> None:
-        """RAM back to its initial values; EEPROM kept; hardware errors cleared."""
-        self._reset(keep=[item.name for item in self.items.values() if item.eeprom] + ["present_position"])
+        """RAM back to its initial values; EEPROM kept; hardware errors and a Bus Watchdog Error cleared."""
+        self._reset_noted(keep=[item.name for item in self.items.values() if item.eeprom] + ["present_position"],
+                          why="reboot")
 
     def factory_reset(self, option: int) -> None:
         keep = {0xFF: [], 0x01: ["id"], 0x02: ["id", "baud_rate"]}[option]
-        self._reset(keep=keep + ["present_position"])
+        self._reset_noted(keep=keep + ["present_position"], why="factory reset")
+
+    def _reset_noted(self, keep: list[str], why: str) -> None:
+        """`_reset`, with its torque off and watchdog reset noted under the ID the servo had (a factory reset may
+        change it)."""
+        dxl_id, watchdog = self.id, self.get("bus_watchdog")
+        self.notes = self.take_notes()     # a torque change before the reset, noted first
+        self._reset(keep=keep)
+        if self._torque_seen and not self.torque:
+            self._torque_seen = False
+            self.notes.append(f"dynamixel {dxl_id} torque off")
+        if watchdog:
+            self.notes.append(f"dynamixel {dxl_id} bus watchdog 0 (off, {why}"
+                              f"{', error cleared' if watchdog == BUS_WATCHDOG_ERROR else ''})")
 
     def set_hardware_error(self, bits: int) -> None:
         self._put("hardware_error_status", bits)
@@ -324,6 +448,8 @@ class DynamixelBusEmulator:
         self._silent: set[int] = set()
         self._corrupt: dict[int, list] = {}       # id -> [mode, remaining or None]
         self._last_rx = 0.0
+        self._events: deque[tuple[float, str]] = deque(maxlen=MAX_EVENTS)
+        self.events_dropped = 0            # events pushed out of the full log, oldest first
         self._pty: PtyDevice | None = None
 
     # -- transport ---------------------------------------------------------------------------------------------
@@ -361,14 +487,54 @@ class DynamixelBusEmulator:
     def handle(self, data: bytes) -> bytes:
         """Bytes from the host -> the bytes the servos answer (the pty thread calls this; tests may call it too)."""
         with self._lock:
+            now = time.monotonic()
+            self._tick(now)     # the silence before these bytes first: a watchdog may have run out in it
             out = []
             for packet in self._parser.feed(data):
+                if packet.instruction != INST_STATUS:
+                    for servo in self.servos:
+                        if servo.id not in self._silent:
+                            servo.heard(now)
                 out += self._process(packet)
+                self._note(now)
             for dxl_id in self._parser.take_crc_failures():
                 servo = self._servo(dxl_id)
                 if servo is not None:
                     out.append(self._status(servo, ERR_CRC))
             return b"".join(out)
+
+    # -- Bus Watchdog and the event log ------------------------------------------------------------------------
+    def _note(self, stamp: float) -> None:
+        """The servos' new event texts into the log, stamped."""
+        for servo in self.servos:
+            for text in servo.take_notes():
+                if len(self._events) == MAX_EVENTS:
+                    self.events_dropped += 1
+                self._events.append((stamp, text))
+
+    def _tick(self, now: float | None = None) -> None:
+        """Every servo's Bus Watchdog checked at `now` (default: this moment); events logged."""
+        now = time.monotonic() if now is None else now
+        for servo in self.servos:
+            servo.check_watchdog(now)
+        self._note(now)
+
+    def check_watchdogs(self) -> list[int]:
+        """Check every servo's Bus Watchdog now (the accessors do it too); the IDs whose watchdog ran out now."""
+        with self._lock:
+            now = time.monotonic()
+            expired = [servo.id for servo in self.servos if servo.check_watchdog(now)]
+            self._note(now)
+            return expired
+
+    def drain_events(self) -> list[tuple[float, str]]:
+        """(time.monotonic() stamp, text) of the events since the last drain, oldest first (the newest
+        `MAX_EVENTS` are kept): Torque Enable changes, Bus Watchdog writes and expiries. Thread-safe."""
+        with self._lock:
+            self._tick()
+            events = list(self._events)
+            self._events.clear()
+            return events
 
     # -- dispatch ----------------------------------------------------------------------------------------------
     def _servo(self, dxl_id: int) -> XSeriesServo | None:
@@ -530,6 +696,7 @@ class DynamixelBusEmulator:
         if unit not in ("counts", "rad"):
             raise ValueError(f"unit must be 'counts' or 'rad', got {unit!r}")
         with self._lock:
+            self._tick()
             servo = self._by_id(dxl_id)
             if position is not None:
                 counts = position / POSITION_UNIT if unit == "rad" else position
@@ -548,37 +715,44 @@ class DynamixelBusEmulator:
         positions = self.signs * q + math.pi
         velocities = self.signs * qd
         with self._lock:
+            self._tick()
             for dxl_id, position, velocity in zip(self.ids, positions, velocities, strict=True):
                 self.set_present(dxl_id, position, velocity, unit="rad")
 
     def goal_position(self, dxl_id: int, unit: str = "counts") -> float:
         with self._lock:
+            self._tick()
             counts = self._by_id(dxl_id).get("goal_position")
         return counts * POSITION_UNIT if unit == "rad" else counts
 
     def goal_joint_positions(self) -> np.ndarray:
         """Goal positions in joint rad, in the order of `ids`."""
         with self._lock:
+            self._tick()
             counts = np.array([self._by_id(i).get("goal_position") for i in self.ids])
         return counts_to_joint(counts, self.signs)
 
     def torque_enabled(self, dxl_id: int) -> bool:
         with self._lock:
+            self._tick()
             return self._by_id(dxl_id).torque
 
     def torque_enabled_all(self) -> np.ndarray:
         with self._lock:
+            self._tick()
             return np.array([self._by_id(i).torque for i in self.ids])
 
     def item(self, dxl_id: int, name: str) -> int:
         """Any control table item of one servo, by its snake_case name (e.g. "position_p_gain")."""
         with self._lock:
+            self._tick()
             return self._by_id(dxl_id).get(name)
 
     # -- faults for tests --------------------------------------------------------------------------------------
     def silence(self, ids: Iterable[int], silent: bool = True) -> None:
         """Servos that neither answer nor act (unplugged); `silent=False` brings them back."""
         with self._lock:
+            self._tick()
             (self._silent.update if silent else self._silent.difference_update)(int(i) for i in ids)
 
     def set_hardware_error(self, dxl_id: int, flags: Sequence[str] | int) -> None:
@@ -586,7 +760,9 @@ class DynamixelBusEmulator:
         Alert bit, and torque goes off for bits in Shutdown (63). REBOOT clears it."""
         bits = flags if isinstance(flags, int) else encode_hardware_error(flags)
         with self._lock:
+            self._tick()
             self._by_id(dxl_id).set_hardware_error(bits)
+            self._note(time.monotonic())
 
     def corrupt_replies(self, ids: Iterable[int] | None = None, mode: str = "crc", count: int | None = None) -> None:
         """Corrupt the next `count` (None: all) status packets of `ids` (None: every servo). Modes: "crc" (bad CRC),
@@ -600,6 +776,7 @@ class DynamixelBusEmulator:
     def clear_faults(self) -> None:
         """Everyone answers again, uncorrupted, with hardware errors cleared."""
         with self._lock:
+            self._tick()
             self._silent.clear()
             self._corrupt.clear()
             for servo in self.servos:
