@@ -4,6 +4,7 @@ pseudo-terminal, an independent raw-pyserial host against the emulator, and prop
 from __future__ import annotations
 
 import struct
+import threading
 import time
 
 import numpy as np
@@ -32,7 +33,7 @@ from drivers.bear import (
     error_flags,
     status_register,
 )
-from drivers.emulators.bear import BearBusEmulator
+from drivers.emulators.bear import BearBusEmulator, EventLog
 from drivers.errors import BusTimeout, DeviceFault, DriverError
 
 IDS = list(range(1, 11))
@@ -237,6 +238,190 @@ def test_emulator_watchdog_damps_a_forgotten_torque_mode_motor():
     assert emu.command(1).torque_enable == 1
     time.sleep(0.1)
     assert emu.command(1).torque_enable == 3 and emu.command(1).error & 0x08
+
+
+# -- the emulator's event log, reply loss and cut wire (no pty) -----------------------------------------------------
+def _texts(emu: BearBusEmulator) -> list[str]:
+    return [text for _, text in emu.drain_events()]
+
+
+def test_emulator_logs_torque_enable_changes_with_their_causes():
+    emu = BearBusEmulator([1, 2])
+    write_torque = lambda device_id, v: emu.handle(frame(device_id, 0x03, b"\x00" + u32(v)))  # noqa: E731
+    before = time.monotonic()
+    emu.handle(frame(1, 0x05, b"\x1a" + u32(20)))  # watchdog_timeout 20 (ms)
+    write_torque(1, 1)
+    write_torque(1, 1)  # no change, no event
+    after = time.monotonic()
+    events = emu.drain_events()
+    assert [text for _, text in events] == ["bear 1 watchdog_timeout 20", "bear 1 torque_enable 0 -> 1 (host write)"]
+    assert all(before <= stamp <= after for stamp, _ in events)
+    enabled_at = events[1][0]
+    emu.handle(frame(1, 0x05, b"\x1a" + u32(30)))  # refused while enabled: logged as such, no watchdog event
+    assert _texts(emu) == ["bear 1 config write ignored (torque_enable 1)"]
+    time.sleep(0.05)
+    emu.command(1)  # the plant's poll: the watchdog is detected here, and stamped when detected
+    (stamp, text), = emu.drain_events()
+    assert text.startswith("bear 1 torque_enable 1 -> 3 (watchdog: ") and text.endswith(" ms without a packet)")
+    silent_ms = float(text.split("watchdog: ")[1].split(" ms")[0])
+    assert 20.0 < silent_ms and abs(silent_ms - 1e3 * (stamp - enabled_at)) < 1.0
+    write_torque(1, 0)
+    emu.set_estop(True, [2])
+    emu.set_estop(False, [2])
+    write_torque(2, 1)
+    emu.set_register_value(2, "input_voltage", 5.0)
+    emu.set_register_value(2, "input_voltage", 24.0)
+    emu.set_measured(2, 3.5, 0.0, 0.0)  # past limit_position_max while enabled
+    emu.set_measured(2, 0.0, 0.0, 0.0)
+    write_torque(2, 3)
+    emu.power_cycle([2])
+    assert _texts(emu) == [
+        "bear 1 torque_enable 3 -> 0 (host write)",
+        "bear 2 torque_enable 0 -> 3 (e-stop input)",
+        "bear 2 torque_enable 3 -> 0 (e-stop input)",
+        "bear 2 torque_enable 0 -> 1 (host write)",
+        "bear 2 torque_enable 1 -> 2 (input_voltage set)",
+        "bear 2 torque_enable 2 -> 1 (input_voltage set)",
+        "bear 2 torque_enable 1 -> 2 (fault: joint_limit)",
+        "bear 2 torque_enable 2 -> 1 (fault cleared)",
+        "bear 2 torque_enable 1 -> 3 (host write)",
+        "bear 2 torque_enable 3 -> 0 (power cycle)",
+    ]
+    # BULK_COMM writes count as host writes; a watchdog in another mode than torque never fires
+    emu.handle(frame(2, 0x05, b"\x01" + u32(2) + b"\x1a" + u32(5)))
+    emu.handle(frame(0xFE, 0x12, bytes([1, 0x01, 0x00, 2]) + u32(1)))
+    time.sleep(0.02)
+    emu.commands()
+    assert _texts(emu) == ["bear 2 watchdog_timeout 5", "bear 2 torque_enable 0 -> 1 (host write)"]
+    assert emu.drain_events() == []
+
+
+def test_event_log_is_bounded_and_thread_safe():
+    log = EventLog(maxlen=100)
+
+    def add(k: int) -> None:
+        for j in range(1000):
+            log.add(f"{k} {j}")
+
+    threads = [threading.Thread(target=add, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    kept = log.drain()
+    assert len(kept) == 100 and log.dropped == 3900 and log.drain() == []
+    assert [stamp for stamp, _ in kept] == sorted(stamp for stamp, _ in kept)
+    emu = BearBusEmulator([1])
+    for k in range(10_002):  # one event each: the two oldest go
+        emu.set_estop(k % 2 == 0)
+    events = emu.drain_events()
+    assert len(events) == 10_000 and emu.events_dropped == 2
+    assert events[0][1] == "bear 1 torque_enable 0 -> 3 (e-stop input)"
+
+
+def test_reply_loss_matches_its_probabilities():
+    emu = BearBusEmulator(IDS)
+    emu.set_reply_loss(drop=0.05, corrupt=0.01, seed=1)
+    assert _texts(emu) == ["bear reply loss drop 0.05 corrupt 0.01"]
+    request = encode_bulk(IDS, [status_register(n) for n in CYCLE_READS])
+    parser = StatusParser()
+    cycles = 3000
+    for _ in range(cycles):
+        parser.clear()
+        parser.expect(4 * len(CYCLE_READS) + 2, IDS)
+        parser.feed(emu.handle(request))
+    n = cycles * len(IDS)
+    losses = emu.reply_losses
+    assert emu.replies == n
+    # binomial counts within 5 standard deviations of their means
+    for kinds, p in ((("drop",), 0.05), (("checksum", "truncate", "garbage"), 0.01), (("checksum",), 0.01 / 3)):
+        count = sum(losses[k] for k in kinds)
+        assert abs(count - n * p) < 5 * (n * p * (1 - p)) ** 0.5, (kinds, count)
+    assert set(losses) == {"drop", "checksum", "truncate", "garbage"}
+    # dropped, bad-checksum and truncated replies are lost; garbage only precedes an intact reply
+    lost = losses["drop"] + losses["checksum"] + losses["truncate"]
+    assert abs(parser.stats.packets - (n - lost)) <= 3
+    assert parser.stats.rejected["garbage"] >= losses["garbage"]
+    # the same seed, the same losses; (0, 0) turns it off
+    again = BearBusEmulator(IDS)
+    again.set_reply_loss(0.05, 0.01, seed=1)
+    for _ in range(cycles):
+        again.handle(request)
+    assert again.reply_losses == losses
+    again.set_reply_loss()
+    again.handle(request)
+    assert again.reply_losses == losses
+    with pytest.raises(ValueError):
+        emu.set_reply_loss(0.7, 0.4)
+
+
+def test_unplugged_bus_answers_nothing_and_the_watchdogs_run_out():
+    emu = BearBusEmulator([1, 2, 3])
+    emu.silence([3])
+    for device_id in (1, 2):
+        emu.handle(frame(device_id, 0x05, b"\x1a" + u32(20)))
+        emu.handle(frame(device_id, 0x03, b"\x00" + u32(1)))
+    emu.drain_events()
+    packets = emu.stats.packets
+    emu.handle(frame(1, 0x01)[:3])  # half a packet on the wire when it is cut
+    emu.unplug()
+    assert emu.unplugged
+    ping, bulk = frame(1, 0x01), encode_bulk([1, 2], [status_register("present_position")])
+    for _ in range(3):
+        assert emu.handle(ping) == b"" and emu.handle(bulk) == b""
+        time.sleep(0.015)  # the host keeps trying: none of it reaches a BEAR
+    assert emu.stats.packets == packets and emu.unplugged_bytes == 3 * (len(ping) + len(bulk))
+    assert emu.requests["PING"] == 0 and emu.requests["BULK_COMM"] == 0
+    texts = _texts(emu)
+    assert texts[0] == "bear unplug" and len(texts) == 3
+    assert sorted(t.split(" (")[0] for t in texts[1:]) == ["bear 1 torque_enable 1 -> 3", "bear 2 torque_enable 1 -> 3"]
+    assert all("(watchdog: " in t for t in texts[1:])
+    emu.unplug(False)
+    assert _texts(emu) == ["bear plug"]
+    assert emu.handle(ping) == frame(1, 0x88, b"\x01\x01")  # answers again, damping; the cut packet is gone
+    assert emu.handle(frame(3, 0x01)) == b""  # silenced before: still silent
+
+
+def test_watchdog_expiry_is_detected_within_a_poll_period():
+    """With something polling commands() every millisecond (the plant), a watchdog expiry is logged within a few
+    milliseconds of the deadline, though no packet arrives."""
+    emu = BearBusEmulator([1])
+    emu.handle(frame(1, 0x05, b"\x1a" + u32(30)))
+    emu.handle(frame(1, 0x03, b"\x00" + u32(1)))
+    last_packet = time.monotonic()
+    emu.unplug()
+    stop = threading.Event()
+
+    def poll() -> None:
+        while not stop.is_set():
+            emu.commands()
+            time.sleep(0.001)
+
+    poller = threading.Thread(target=poll)
+    poller.start()
+    time.sleep(0.1)
+    stop.set()
+    poller.join()
+    (stamp, text), = [e for e in emu.drain_events() if "watchdog:" in e[1]]
+    late_s = stamp - (last_packet + 0.030)
+    assert 0.0 <= late_s < 0.02, late_s  # a loaded machine gets slack; typically about 1 ms
+
+
+def test_driver_rides_out_one_percent_reply_loss(emulator):
+    emulator.set_reply_loss(drop=0.01, corrupt=0.01, seed=2)
+    timeouts = 0
+    with BearBus(emulator.path, reply_timeout_s=0.01) as bus:
+        for _ in range(300):
+            try:
+                reply = bus.bulk_cycle(IDS, "torque", goal_iq=np.zeros(10))
+                assert reply.ids == tuple(IDS)
+            except BusTimeout:
+                timeouts += 1
+        stats = bus.stats
+    lost = emulator.reply_losses
+    assert lost["drop"] > 0 and stats.retries > 0
+    assert stats.rejected["checksum"] + stats.rejected["truncated"] >= lost["checksum"] > 0
+    assert timeouts <= 5  # both tries lost for one motor: about 1e-4 per motor and cycle
 
 
 # -- the driver over the emulator's pty -----------------------------------------------------------------------------

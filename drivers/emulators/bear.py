@@ -23,7 +23,10 @@ Choices where the sources are silent (documented here because a host can observe
   3 while damping or the E-stop input is asserted. Bits injected with `set_error` latch until torque_enable = 0 is
   written (bit 3: until `set_error(id, 3, False)`, it models the external E-stop input).
 - Watchdog: watchdog_timeout (u32, units undocumented) is taken as milliseconds; 0 turns it off. In torque mode
-  (mode 0), enabled, a BEAR that has received no packet for longer than that goes into damping.
+  (mode 0), enabled, a BEAR that has received no packet addressed to it (its ID, the broadcast ID, or a BULK_COMM
+  entry) for longer than that goes into damping. It is checked whenever bytes arrive and on every `command(s)` call
+  (the plant's, every 1 ms), so expiry is detected within a millisecond while a plant runs, at the next packet
+  otherwise.
 - Reading an unknown address returns 4 zero bytes and sets bit 0 (a read whose reply would not fit one packet, over
   63 addresses, gets no reply and sets bit 0); writing an unknown or read-only register skips it
   and sets bit 0. A mode above 3 is refused (bit 0). Writing config `id` moves the BEAR to the new ID (if free).
@@ -32,14 +35,28 @@ Choices where the sources are silent (documented here because a host can observe
 - The ping reply's data is `ping_data` (2 bytes: firmware and hardware version; the content is undocumented).
 - present_position is reported as the physics adapter sets it (the homing offset is the adapter's business).
 - A partial packet older than 20 ms when new bytes arrive is dropped (an idle-line reset, as UART firmware does).
+
+Faults for tests: `silence(ids)` (those BEARs unplugged), `unplug()` (the bus's wire cut both ways: bytes from the
+host are discarded unread, nothing is answered, every watchdog runs out), `set_error`, `set_estop`,
+`corrupt_next_reply(kind)` (one reply), `set_reply_loss(drop, corrupt, seed)` (every reply independently dropped or
+corrupted, counted by kind in `reply_losses`), `power_cycle`.
+
+Event log: `drain_events()` returns `(time.monotonic() stamp, text)` pairs of what happened since the last drain,
+stamped when it happened (a watchdog expiry: when detected). Logged: every change of a BEAR's torque_enable as read,
+with its cause (`bear 3 torque_enable 1 -> 3 (watchdog: 51.2 ms without a packet)`, `(host write)`,
+`(e-stop input)`, `(fault: joint_limit)`, `(fault cleared)`, `(<register> set)`, `(power cycle)`); a watchdog_timeout
+value taking effect (`bear 3 watchdog_timeout 50`); a config write ignored because torque is enabled
+(`bear 3 config write ignored (torque_enable 1)`); `bear unplug` / `bear plug`; `bear reply loss drop P corrupt P`.
+"bear" is the emulator's `name`. At most 10,000 events wait; older ones are dropped (counted in `events_dropped`).
 """
 
 from __future__ import annotations
 
+import random
 import struct
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -63,6 +80,7 @@ from drivers.bear import (
     TorqueEnable,
     checksum,
     encode_status,
+    error_flags,
 )
 from drivers.emulators.pty_device import PtyDevice
 from drivers.errors import LinkStats
@@ -70,6 +88,8 @@ from drivers.framing import skip_to_header
 
 STALE_RX_S = 0.02
 CORRUPTIONS = ("checksum", "truncate", "garbage", "foreign", "drop")
+LOSS_CORRUPTIONS = ("checksum", "truncate", "garbage")  # what set_reply_loss's `corrupt` does, drawn evenly
+MAX_EVENTS = 10_000
 
 # Power-on values. Gains and limits are BRUCE's (bruce_hw.md §2.5); the rest are plausible choices.
 DEFAULT_CONFIG: dict[str, int | float] = {
@@ -110,6 +130,28 @@ class MotorCommand:
     error: int
 
 
+class EventLog:
+    """Timestamped lines of what happened inside an emulator, for a log that tests and people check: thread-safe and
+    bounded (at most `maxlen` wait; the oldest go first, counted in `dropped`); `drain()` takes them."""
+
+    def __init__(self, maxlen: int = MAX_EVENTS):
+        self._events: deque[tuple[float, str]] = deque(maxlen=maxlen)
+        self._lock = threading.Lock()
+        self.dropped = 0
+
+    def add(self, text: str, stamp: float | None = None) -> None:
+        with self._lock:
+            if len(self._events) == self._events.maxlen:
+                self.dropped += 1
+            self._events.append((time.monotonic() if stamp is None else stamp, text))
+
+    def drain(self) -> list[tuple[float, str]]:
+        with self._lock:
+            out = list(self._events)
+            self._events.clear()
+            return out
+
+
 class _Bear:
     """One actuator: config and status register files, flash, and the flags behind its error byte."""
 
@@ -127,6 +169,7 @@ class _Bear:
         self.comm_warning = False
         self.silent = False
         self.last_rx = now
+        self.logged_enable = 0  # torque_enable as read when last logged: changes are logged against it
 
     @property
     def id(self) -> int:
@@ -194,9 +237,11 @@ class _Bear:
         else:  # 2 is only ever read; a float-encoded 1.0 (0x3F800000) lands here too
             self.comm_warning = True
 
-    def write_config(self, pairs: list[tuple[int, bytes]], taken: set[int]) -> None:
+    def write_config(self, pairs: list[tuple[int, bytes]], taken: set[int]) -> list[str] | None:
+        """The names of the registers taken; None when the whole packet is refused (torque enabled)."""
         if self.torque_enable() != TorqueEnable.DISABLED:
-            return  # the whole packet is refused while torque is enabled
+            return None  # the whole packet is refused while torque is enabled
+        written = []
         for address, raw in pairs:
             register = CONFIG_BY_ADDRESS.get(address)
             if register is None:
@@ -209,12 +254,22 @@ class _Bear:
                 self.comm_warning = True
             else:
                 self.config[register.name] = value
+                written.append(register.name)
+        return written
 
-    def check_watchdog(self, now: float) -> None:
+    def check_watchdog(self, now: float) -> float | None:
+        """Damping if the watchdog ran out; returns how long the BEAR went without a packet when it trips now."""
         timeout_ms = self.config["watchdog_timeout"]
         if (timeout_ms and self.config["mode"] == 0 and self.torque_enable() == TorqueEnable.ENABLED
                 and now - self.last_rx > timeout_ms / 1000.0):
             self.damping = True
+            return now - self.last_rx
+        return None
+
+    def fault_cause(self) -> str:
+        """Why torque_enable moved between 1 and 2 by itself: the fault bits now set (E-stop / damping aside)."""
+        flags = error_flags(self.error_byte() & FAULT_BITS & ~BearError.WATCHDOG_ESTOP)
+        return f"fault: {', '.join(flags)}" if flags else "fault cleared"
 
 
 class BearBusEmulator:
@@ -235,6 +290,12 @@ class BearBusEmulator:
         self._rx_time = 0.0
         self._corruptions: list[tuple[str, int | None]] = []
         self._pty: PtyDevice | None = None
+        self._events = EventLog()
+        self._unplugged = False
+        self.unplugged_bytes = 0  # bytes from the host lost to the cut wire
+        self._loss: tuple[float, float, random.Random] | None = None  # (drop, corrupt, generator)
+        self.replies = 0  # reply packets the BEARs produced, spoiled or dropped ones included
+        self.reply_losses: Counter[str] = Counter()  # set_reply_loss: "drop", "checksum", "truncate", "garbage"
 
     # -- lifecycle --
     def start(self) -> BearBusEmulator:
@@ -270,6 +331,33 @@ class BearBusEmulator:
             for device_id in ids:
                 self._bears[device_id].silent = silent
 
+    def unplug(self, unplugged: bool = True) -> None:
+        """Cut the bus's wire both ways (`unplugged=False` mends it): bytes from the host are discarded unread and
+        nothing is answered, so no packet reaches any BEAR and their watchdogs run out. The BEARs keep their state
+        and per-ID `silence`; a partial packet on the wire when it is cut is lost."""
+        with self._lock:
+            if bool(unplugged) == self._unplugged:
+                return
+            self._unplugged = bool(unplugged)
+            self._rx.clear()
+            self._events.add(f"{self.name} {'unplug' if unplugged else 'plug'}")
+
+    @property
+    def unplugged(self) -> bool:
+        return self._unplugged
+
+    def set_reply_loss(self, drop: float = 0.0, corrupt: float = 0.0, seed: int | None = None) -> None:
+        """From now on every reply packet is independently dropped with probability `drop`, or corrupted with
+        probability `corrupt` (a bad checksum, truncated to half, or noise with a false header before it, drawn
+        evenly); counted by kind in `reply_losses`. (0, 0) turns it off. `seed` makes the draws repeatable."""
+        drop, corrupt = float(drop), float(corrupt)
+        if not (0.0 <= drop <= 1.0 and 0.0 <= corrupt <= 1.0 and drop + corrupt <= 1.0):
+            raise ValueError(f"reply loss probabilities must be in [0, 1] with drop + corrupt <= 1, got {drop}, "
+                             f"{corrupt}")
+        with self._lock:
+            self._loss = (drop, corrupt, random.Random(seed)) if drop or corrupt else None
+            self._events.add(f"{self.name} reply loss drop {drop:g} corrupt {corrupt:g}")
+
     def set_error(self, device_id: int, bit: int | BearError, on: bool = True) -> None:
         """Raise (or drop) an error bit: a bit number 0-6 or a BearError. Bit 3 is the E-stop input (held until
         dropped); bit 0 is reported once; the others latch until torque_enable = 0 is written."""
@@ -282,6 +370,9 @@ class BearBusEmulator:
                 bear.comm_warning = on
             rest = mask & ~(BearError.WATCHDOG_ESTOP | BearError.COMMUNICATION) & 0x7F
             bear.latched = bear.latched | rest if on else bear.latched & ~rest
+            cause = "e-stop input" if mask & BearError.WATCHDOG_ESTOP else \
+                f"injected {', '.join(error_flags(rest)) or 'nothing'}"
+            self._track(bear, time.monotonic(), cause)
 
     def set_estop(self, on: bool = True, ids: Iterable[int] | None = None) -> None:
         """The external E-stop input of these BEARs (all by default)."""
@@ -300,9 +391,12 @@ class BearBusEmulator:
     # -- physics adapter --
     def set_measured(self, device_id: int, position: float, velocity: float, iq: float) -> None:
         with self._lock:
-            status = self._bears[device_id].status
+            bear = self._bears[device_id]
+            status = bear.status
             status["present_position"], status["present_velocity"], status["present_iq"] = \
                 _f32(position), _f32(velocity), _f32(iq)
+            if bear.enable and bear.torque_enable() != bear.logged_enable:  # a joint limit crossed while enabled
+                self._track(bear, time.monotonic(), bear.fault_cause())
 
     def set_measured_many(self, ids: Sequence[int], positions, velocities, iqs) -> None:
         with self._lock:
@@ -313,7 +407,7 @@ class BearBusEmulator:
     def command(self, device_id: int) -> MotorCommand:
         with self._lock:
             bear = self._bears[device_id]
-            bear.check_watchdog(time.monotonic())
+            self._check_watchdog(bear, time.monotonic())
             s = bear.status
             return MotorCommand(bear.id, int(bear.config["mode"]), bear.torque_enable(), s["goal_position"],
                                 s["goal_velocity"], s["goal_iq"], s["goal_id"], bear.error_byte())
@@ -346,6 +440,10 @@ class BearBusEmulator:
             bear = self._bears[device_id]
             files = bear.config if table == "config" else bear.status
             files[name] = _f32(float(value)) if register.kind == "f32" else int(value)
+            now = time.monotonic()
+            if name == "watchdog_timeout":
+                self._events.add(f"{self.name} {bear.id} watchdog_timeout {bear.config[name]}", now)
+            self._track(bear, now, f"{name} set")
 
     def saved_config(self, device_id: int) -> dict[str, int | float]:
         """The config registers as last stored in flash by SAVE_CFG."""
@@ -357,10 +455,37 @@ class BearBusEmulator:
         with self._lock:
             for device_id in list(self.ids if ids is None else ids):
                 old = self._bears.pop(device_id)
-                bear = _Bear(int(old.flash["id"]), time.monotonic())
+                now = time.monotonic()
+                bear = _Bear(int(old.flash["id"]), now)
                 bear.config, bear.flash = dict(old.flash), dict(old.flash)
                 bear.estop, bear.silent = old.estop, old.silent  # wiring, not state
+                bear.logged_enable = old.logged_enable
                 self._bears[bear.id] = bear
+                if bear.config["watchdog_timeout"] != old.config["watchdog_timeout"]:
+                    self._events.add(f"{self.name} {bear.id} watchdog_timeout {bear.config['watchdog_timeout']}", now)
+                self._track(bear, now, "power cycle")
+
+    # -- event log --
+    def drain_events(self) -> list[tuple[float, str]]:
+        """(time.monotonic() stamp, text) of every event since the last drain, oldest first (module docstring)."""
+        return self._events.drain()
+
+    @property
+    def events_dropped(self) -> int:
+        """Events lost because 10,000 were waiting undrained."""
+        return self._events.dropped
+
+    def _track(self, bear: _Bear, now: float, cause: str) -> None:
+        """Log a change of the BEAR's torque_enable (as read) since the last one logged."""
+        value = int(bear.torque_enable())
+        if value != bear.logged_enable:
+            self._events.add(f"{self.name} {bear.id} torque_enable {bear.logged_enable} -> {value} ({cause})", now)
+            bear.logged_enable = value
+
+    def _check_watchdog(self, bear: _Bear, now: float) -> None:
+        silent_s = bear.check_watchdog(now)
+        if silent_s is not None:
+            self._track(bear, now, f"watchdog: {1e3 * silent_s:.1f} ms without a packet")
 
     # -- the wire --
     def _on_bytes(self, data: bytes) -> None:
@@ -372,13 +497,16 @@ class BearBusEmulator:
         """Bytes from the host in, the devices' answer out (b"" when nobody answers)."""
         with self._lock:
             now = time.monotonic()
+            for bear in self._bears.values():
+                self._check_watchdog(bear, now)
+            if self._unplugged:  # the wire is cut: nothing reaches the BEARs (their clocks run on, above)
+                self.unplugged_bytes += len(data)
+                return b""
             if self._rx and now - self._rx_time > STALE_RX_S:
                 self.stats.reject("truncated")
                 self._rx.clear()
             self._rx_time = now
             self._rx += data
-            for bear in self._bears.values():
-                bear.check_watchdog(now)
             out = bytearray()
             for device_id, code, params in self._frames():
                 out += self._execute(device_id, code, params, now)
@@ -442,8 +570,9 @@ class BearBusEmulator:
                 if instruction is Instruction.WRITE_STAT:
                     for address, raw in pairs:
                         bear.write_status(address, raw)
+                    self._track(bear, now, "host write")
                 else:
-                    bear.write_config(pairs, taken=set(self._bears))
+                    self._write_config(bear, pairs, now)
             elif instruction is Instruction.SAVE_CFG and not params:
                 if bear.torque_enable() == TorqueEnable.DISABLED:
                     bear.flash = dict(bear.config)
@@ -473,16 +602,39 @@ class BearBusEmulator:
             bear.last_rx = now
             for j, address in enumerate(writes):
                 bear.write_status(address, entry[1 + 4 * j:5 + 4 * j])
+            if writes:
+                self._track(bear, now, "host write")
             if n_read:
                 out += self._reply(bear, bear.read(STATUS_BY_ADDRESS, reads))
         return bytes(out)
 
+    def _write_config(self, bear: _Bear, pairs: list[tuple[int, bytes]], now: float) -> None:
+        before = bear.torque_enable()
+        written = bear.write_config(pairs, taken=set(self._bears))
+        if written is None:
+            self._events.add(f"{self.name} {bear.id} config write ignored (torque_enable {int(before)})", now)
+            return
+        if "watchdog_timeout" in written:
+            self._events.add(f"{self.name} {bear.id} watchdog_timeout {bear.config['watchdog_timeout']}", now)
+        self._track(bear, now, "host config write")  # limits and voltages move the fault bits
+
     def _reply(self, bear: _Bear, data: bytes) -> bytes:
         packet = encode_status(bear.id, bear.error_byte(), data)
         bear.comm_warning = False  # reported: the warning resets
+        self.replies += 1
         for k, (kind, target) in enumerate(self._corruptions):
             if target is None or target == bear.id:
                 del self._corruptions[k]
+                return _spoil(packet, kind)
+        if self._loss is not None:
+            drop, corrupt, rng = self._loss
+            draw = rng.random()
+            if draw < drop:
+                self.reply_losses["drop"] += 1
+                return b""
+            if draw < drop + corrupt:
+                kind = rng.choice(LOSS_CORRUPTIONS)
+                self.reply_losses[kind] += 1
                 return _spoil(packet, kind)
         return packet
 

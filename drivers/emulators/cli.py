@@ -8,10 +8,22 @@ one line on its standard output, "ok ..." with the monotonic time it took effect
 
   silence bear|dynamixel|can ID...   these devices stop answering, as if unplugged
   answer bear|dynamixel|can ID...    they answer again
+  unplug bear|dynamixel|sense        cut the bus's wire both ways. BEAR: bytes from the host are discarded and
+                                     nothing answers, so every BEAR watchdog runs out; Dynamixel: every servo
+                                     silenced; sense board: stops streaming (as `imu stop`)
+  plug bear|dynamixel|sense          mend it (Dynamixel: every servo answers again, as `answer` with all IDs)
+  loss bear DROP CORRUPT [SEED]      from now on each BEAR reply is dropped with probability DROP or corrupted
+                                     (bad checksum, truncated, garbage, drawn evenly) with probability CORRUPT
   estop on|off                       the E-stop input of every BEAR (error bit 3, damping)
   imu stop|start                     the sense board stops (resumes) streaming
   place                              put the robot back on its feet, held until a leg actuator is enabled
-  status                             one JSON line: actuator modes and enables, arms, sense board, physics
+  status                             one JSON line: actuator modes and enables, arms, sense board, physics, loss
+
+Events: every emulator event (the BEAR emulator's: each change of a BEAR's torque_enable with its cause, watchdog
+expiries, watchdog_timeout values taking effect, unplug / plug, loss settings; see drivers/emulators/bear.py; and
+those of the other emulators that keep a log) is printed as it happens as one line `event t=<monotonic> <text>`,
+stamped with the emulator's time.monotonic() when it happened (the system's clock, shared by every process), not
+when printed. `EmulatorProcess.events()` parses them.
 
 --realtime runs the emulators at SCHED_FIFO 40 on every CPU but the last (bruce-run's loop takes that one), as
 devices with their own clocks; on a loaded machine it keeps their replies within the BEAR's 2 ms timeout.
@@ -42,6 +54,22 @@ PROG = "bruce-emulate"
 # if none of them can hold the GIL for CPython's default 5 ms.
 SWITCH_INTERVAL_S = 0.0005
 EMULATOR_PRIORITY = 40  # SCHED_FIFO priority with --realtime: below bruce-run's control loop (50)
+EVENT_POLL_S = 0.002  # how often the emulators' event logs are drained and printed
+_print_lock = threading.Lock()  # event lines and command replies come from two threads: whole lines only
+
+
+def _say(text: str) -> None:
+    """One or more whole lines to stdout, flushed, never interleaved with another thread's."""
+    with _print_lock:
+        sys.stdout.write(text + "\n")
+        sys.stdout.flush()
+
+
+def _probability(text: str) -> float:
+    value = float(text)
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"{text} is not a probability in [0, 1]")
+    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -59,6 +87,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--realtime", action="store_true",
                    help=f"run the emulators at SCHED_FIFO {EMULATOR_PRIORITY} (below bruce-run's loop), as devices "
                         "with their own clocks would; on a loaded machine this keeps their replies in time")
+    p.add_argument("--bear-drop", type=_probability, default=0.0, metavar="P",
+                   help="drop each BEAR reply with probability P (default %(default)s)")
+    p.add_argument("--bear-corrupt", type=_probability, default=0.0, metavar="P",
+                   help="corrupt each BEAR reply with probability P: bad checksum, truncated or garbage before it, "
+                        "drawn evenly (default %(default)s)")
+    p.add_argument("--loss-seed", type=int, default=None, metavar="N",
+                   help="seed of the reply-loss draws, for a repeatable run (default: random)")
     p.add_argument("--run", nargs=argparse.REMAINDER, default=None, metavar="BRUCE_RUN_ARGS",
                    help="run `bruce-run --backend hw` against the emulators inside this process with these "
                         "options (the rest of the command line), then stop; needed for CAN configs")
@@ -98,6 +133,14 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if restore is not None:
             restore()  # the main thread (and bruce-run with --run) back to normal scheduling on every CPU
+    if args.bear_drop or args.bear_corrupt:
+        if robot.bear is None:
+            robot.close()
+            print(f"{PROG}: --bear-drop / --bear-corrupt need a BEAR bus; this config has CAN legs", file=sys.stderr)
+            return 2
+        robot.bear.set_reply_loss(args.bear_drop, args.bear_corrupt, args.loss_seed)
+    # Started after `restore()`: printing is no device's work, it runs at normal priority.
+    printer = _EventPrinter(robot)
     # Everything allocated so far (MuJoCo, numpy, the emulators) out of the collector's reach: a full collection
     # over it holds the GIL for milliseconds, long enough for a BEAR reply to miss the host's 2 ms timeout.
     gc.collect()
@@ -111,6 +154,7 @@ def main(argv: list[str] | None = None) -> int:
             from runtime.cli import main as bruce_run
 
             print(f"{PROG}: running bruce-run {shlex.join(run_args + args.run)}", flush=True)
+            printer.start()
             return bruce_run(run_args + args.run)
         if robot.can and robot.can_interface == "virtual":
             print(f"{PROG}: the CAN motors are on python-can's `virtual` bus, which only this process reaches: run "
@@ -119,13 +163,42 @@ def main(argv: list[str] | None = None) -> int:
                   "--set buses.can.timeout_s=0.005; 1 kHz needs --can-interface socketcan on vcan channels)")
         print("run the robot stack against it with:")
         print(f"  bruce-run {shlex.join(run_args)}")
-        print("Ctrl-C stops the emulators; fault commands on stdin (silence, answer, estop, imu, place, status).",
-              flush=True)
+        print("Ctrl-C stops the emulators; fault commands on stdin (silence, answer, unplug, plug, loss, estop, imu, "
+              "place, status).", flush=True)
+        printer.start()
         _serve(robot, args.duration)
         return 0
     finally:
+        printer.stop()
         robot.close()
-        print(f"{PROG}: stopped; {_counters(robot)}", flush=True)
+        printer.flush()  # what happened up to the end (closing included)
+        _say(f"{PROG}: stopped; {_counters(robot)}")
+
+
+class _EventPrinter:
+    """Drains every emulator's event log every EVENT_POLL_S and prints one `event t=... text` line per event."""
+
+    def __init__(self, robot, period_s: float = EVENT_POLL_S):
+        self.robot, self.period_s = robot, period_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="emulate-events", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            self.flush()
+
+    def flush(self) -> None:
+        events = self.robot.drain_events()
+        if events:
+            _say("\n".join(f"event t={stamp:.6f} {text}" for stamp, text in events))
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=1.0)
 
 
 def _realtime():
@@ -175,9 +248,9 @@ def _commands(robot, stop: threading.Event) -> None:
         if not words:
             continue
         try:
-            print(execute(robot, words), flush=True)
+            _say(execute(robot, words))
         except (ValueError, KeyError, IndexError) as exc:
-            print(f"error {' '.join(words)}: {exc}", flush=True)
+            _say(f"error {' '.join(words)}: {exc}")
 
 
 def execute(robot, words: list[str]) -> str:
@@ -199,6 +272,16 @@ def execute(robot, words: list[str]) -> str:
                     (emulator.silence if silent else emulator.resume)(mine)
         else:
             raise ValueError(f"no emulated bus {bus!r} (bear, dynamixel or can, as the config has)")
+    elif verb in ("unplug", "plug"):
+        if len(rest) != 1:
+            raise ValueError(f"{verb} one bus: bear, dynamixel or sense")
+        robot.unplug(rest[0], verb == "unplug")
+    elif verb == "loss":
+        if len(rest) not in (3, 4) or rest[0] != "bear":
+            raise ValueError("loss bear DROP CORRUPT [SEED]")
+        if robot.bear is None:
+            raise ValueError("no emulated BEAR bus (this config has CAN legs)")
+        robot.bear.set_reply_loss(float(rest[1]), float(rest[2]), int(rest[3]) if len(rest) == 4 else None)
     elif verb == "estop" and rest[0] in ("on", "off") and robot.bear is not None:
         robot.bear.set_estop(rest[0] == "on")
     elif verb == "imu" and rest[0] in ("stop", "start"):
@@ -208,7 +291,8 @@ def execute(robot, words: list[str]) -> str:
     elif verb == "status":
         return "status " + json.dumps(status(robot))
     else:
-        raise ValueError("unknown command (silence, answer, estop on|off, imu stop|start, place, status)")
+        raise ValueError("unknown command (silence, answer, unplug, plug, loss, estop on|off, imu stop|start, place, "
+                         "status)")
     return f"ok {' '.join(words)} t={time.monotonic():.6f}"
 
 
@@ -226,7 +310,9 @@ def status(robot) -> dict:
         c = robot.bear.commands(list(cfg.buses.bear.ids))
         out["bear"] = {"ids": list(cfg.buses.bear.ids), "mode": c["mode"].tolist(),
                        "torque_enable": c["torque_enable"].tolist(), "error": c["error"].tolist(),
-                       "bulk_comm": robot.bear.requests["BULK_COMM"]}
+                       "bulk_comm": robot.bear.requests["BULK_COMM"], "replies": robot.bear.replies,
+                       "reply_losses": dict(robot.bear.reply_losses)}
+    out["unplugged"] = sorted(getattr(robot, "unplugged", ()))
     for channel, emulator in robot.can.items():
         out.setdefault("can", {})[channel] = {
             "ids": list(emulator.motor_ids), "motor_mode": [emulator.in_motor_mode(i) for i in emulator.motor_ids],
@@ -240,13 +326,18 @@ def _counters(robot) -> str:
                                      "skipped)")
     if robot.bear is not None:
         text += f"; BEAR bus: {robot.bear.requests['BULK_COMM']} BULK_COMM"
+        losses = robot.bear.reply_losses
+        if losses:
+            text += (f", {sum(losses.values())} of {robot.bear.replies} replies spoiled ("
+                     + ", ".join(f"{n} {kind}" for kind, n in sorted(losses.items())) + ")")
     return text
 
 
 # -- driving bruce-emulate from Python (tests, benchmarks) -------------------------------------------------------
 class EmulatorProcess:
     """`bruce-emulate` as a child process: the bruce-run command line it printed (`command_line`, `overrides`),
-    and its stdin fault commands (`send` waits for the reply line, `post` does not)."""
+    its stdin fault commands (`send` waits for the reply line, `post` does not), and its event log (`events()`,
+    `wait_event()`)."""
 
     def __init__(self, *args: str, start_timeout_s: float = 60.0):
         import queue
@@ -256,6 +347,8 @@ class EmulatorProcess:
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
         self.lines: queue.Queue[str] = queue.Queue()
         self.output: list[str] = []
+        self._events: list[tuple[float, str]] = []
+        self._events_changed = threading.Condition()
         threading.Thread(target=self._pump, name="emulate-output", daemon=True).start()
         try:
             line = self._expect(lambda text: text.strip().startswith("bruce-run "), start_timeout_s)
@@ -269,7 +362,35 @@ class EmulatorProcess:
     def _pump(self) -> None:
         for line in self.proc.stdout:
             self.output.append(line)
-            self.lines.put(line)
+            event = parse_event(line)
+            if event is None:
+                self.lines.put(line)  # event lines never answer a command: kept out of `_expect`'s way
+                continue
+            with self._events_changed:
+                self._events.append(event)
+                self._events_changed.notify_all()
+
+    def events(self) -> list[tuple[float, str]]:
+        """Every event printed so far: (monotonic stamp, text), in the order printed."""
+        with self._events_changed:
+            return list(self._events)
+
+    def wait_event(self, match, timeout_s: float = 10.0, since: float = 0.0) -> tuple[float, str]:
+        """The first event stamped at or after `since` whose text contains `match` (a string) or satisfies it (a
+        callable), waiting up to `timeout_s` for it to be printed; RuntimeError naming the events seen if none."""
+        test = match if callable(match) else (lambda text: match in text)
+        deadline = time.monotonic() + timeout_s
+        with self._events_changed:
+            while True:
+                for stamp, text in self._events:
+                    if stamp >= since and test(text):
+                        return stamp, text
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    seen = "\n".join(f"  {stamp:.6f} {text}" for stamp, text in self._events[-20:])
+                    raise RuntimeError(f"{PROG}: no event matching {match!r} in {timeout_s:g} s; the last "
+                                       f"events:\n{seen}")
+                self._events_changed.wait(left)
 
     def _expect(self, match, timeout_s: float) -> str:
         import queue
@@ -318,6 +439,17 @@ class EmulatorProcess:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def parse_event(line: str) -> tuple[float, str] | None:
+    """(stamp, text) of an `event t=<monotonic> <text>` line; None for any other line."""
+    if not line.startswith("event t="):
+        return None
+    stamp, _, text = line[len("event t="):].rstrip("\n").partition(" ")
+    try:
+        return float(stamp), text
+    except ValueError:
+        return None
 
 
 def reply_time(reply: str) -> float:

@@ -23,9 +23,14 @@ Choices (the emulators leave these to the adapter):
   torque on follow its goal with a first-order lag of `arm_time_constant_s`, starting from the zero pose.
 - Real time: steps are paced on time.monotonic(); after a stall of more than 10 steps the lost time is dropped
   (counted in `skipped_steps`), never run in a burst.
+- Every step reads the BEARs' commands (`BearBusEmulator.commands`), held or not, enabled, off or damping: that
+  call is also what runs the BEAR watchdogs between packets, so an expiry is detected (and logged) within a step
+  even when the host has gone silent.
 
 `EmulatedRobot` starts the emulators a config describes (BEAR or CAN legs, Dynamixel arms, sense board) with a
-plant driving them; `bruce-emulate` (drivers/emulators/cli.py) is its command line.
+plant driving them; `bruce-emulate` (drivers/emulators/cli.py) is its command line. `EmulatedRobot.unplug(bus)`
+cuts a bus's wire, and `EmulatedRobot.drain_events()` merges every emulator's event log (those that have one) with
+its own (unplug / plug of the Dynamixel bus and the sense board), in time order.
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ import numpy as np
 from bruce_hw.config import RobotConfig
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.types import GroundTruth, JointCommand
+from drivers.emulators.bear import EventLog
 
 GRAVITY = 9.80665
 REGISTER_REFRESH_STEPS = 100
@@ -245,6 +251,8 @@ class EmulatedRobot:
     sense: object = None
     can: dict = field(default_factory=dict)
     plant: Plant | None = None
+    events: EventLog = field(default_factory=EventLog)  # the robot's own: unplug / plug of buses without a log
+    unplugged: set[str] = field(default_factory=set)
 
     def start(self) -> EmulatedRobot:
         from drivers.emulators.dynamixel import DynamixelBusEmulator
@@ -283,6 +291,34 @@ class EmulatedRobot:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+    def unplug(self, bus: str, unplugged: bool = True) -> None:
+        """Cut (`unplugged=False`: mend) a bus's wire: "bear" (BearBusEmulator.unplug: nothing reaches the BEARs,
+        nothing is answered), "dynamixel" (every servo silenced: neither answers nor acts; mending it makes every
+        servo answer again, as `silence(..., False)` with all IDs), "sense" (the board stops streaming, as
+        `set_silent`; mending it resumes the stream). The BEAR emulator logs it itself; the others here."""
+        if bus == "bear" and self.bear is not None:
+            self.bear.unplug(unplugged)
+        elif bus == "dynamixel" and self.dynamixel is not None:
+            self.dynamixel.silence(self.config.buses.dynamixel.ids, unplugged)
+        elif bus == "sense" and self.sense is not None:
+            self.sense.set_silent(unplugged)
+        else:
+            raise ValueError(f"no emulated bus {bus!r} to unplug (bear, dynamixel or sense, as the config has)")
+        if bus != "bear":
+            self.events.add(f"{bus} {'unplug' if unplugged else 'plug'}")
+        (self.unplugged.add if unplugged else self.unplugged.discard)(bus)
+
+    def drain_events(self) -> list[tuple[float, str]]:
+        """Every emulator's events since the last drain (those with a `drain_events`) and the robot's own, in time
+        order: (time.monotonic() stamp, text)."""
+        out = self.events.drain()
+        for device in (self.bear, self.dynamixel, self.sense, *self.can.values()):
+            drain = getattr(device, "drain_events", None)
+            if drain is not None:
+                out += drain()
+        out.sort(key=lambda event: event[0])
+        return out
 
     def port_overrides(self) -> list[str]:
         """`KEY=VALUE` config overrides that point the hw backend at these emulators."""
