@@ -2,13 +2,21 @@
 
 Every joint-space array is ordered as `joints.names`. A bad file fails with one `ConfigError` that names the
 file, the dotted key path and what was expected, before anything talks to a robot.
+
+Every numeric setting has a physical range in `BOUNDS` (dotted key patterns -> `Bound`; docs/config_bounds.md is
+the same table for users); relations between settings (a standing pose inside the soft limits, a torque limit the
+actuators can reach) narrow it further where the file is read. `Bound` and `checked_number` are shared with the
+reality-gap profiles and the command scenarios.
 """
 
 from __future__ import annotations
 
 import copy
+import functools
 import itertools
-from dataclasses import dataclass
+import math
+import re
+from dataclasses import dataclass, fields, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -17,6 +25,7 @@ import numpy as np
 import yaml
 
 from bruce_hw.coupling import Coupling
+from drivers.bear import RATED_CURRENT_A
 from drivers.can_motor import MitRanges  # the MIT frame ranges: one type for the config and the driver
 
 DEFAULT_CONFIG = "configs/robots/bruce.yaml"
@@ -159,6 +168,179 @@ class RobotConfig:
         return np.array([i for i, name in enumerate(self.joints) if name.endswith(kinds)], dtype=int)
 
 
+# -- valid ranges ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class Bound:
+    """The valid range of one numeric setting, its unit and the physical reason. Both ends are finite, so a value
+    inside is finite too."""
+
+    low: float
+    high: float
+    unit: str = ""
+    why: str = ""
+    low_open: bool = False
+    high_open: bool = False
+    integer: bool = False
+    step: float = 0.0  # > 0: only low + k * step
+
+    def contains(self, value: float) -> bool:
+        # Comparisons only: NaN fails every one, and a huge YAML integer is compared exactly (no float overflow).
+        if not (value > self.low if self.low_open else value >= self.low):
+            return False
+        if not (value < self.high if self.high_open else value <= self.high):
+            return False
+        return not self.step or abs((value - self.low) / self.step - round((value - self.low) / self.step)) < 1e-6
+
+    def interval(self, unit: bool = False) -> str:
+        """The range, e.g. "(0, 10.5]" ("(0, 10.5] N·m" with `unit`); a two-value step reads "1 or -1"."""
+        low, high = (f"{int(x)}" if self.integer else f"{x:g}" for x in (self.low, self.high))
+        if self.step and self.high - self.low == self.step:
+            return f"{high} or {low}"
+        text = f"{'(' if self.low_open else '['}{low}, {high}{')' if self.high_open else ']'}"
+        text += f" {self.unit}" if unit and self.unit else ""
+        return text + (f" in steps of {self.step:g}" if self.step else "")
+
+    def expected(self) -> str:
+        """What an error says was expected, e.g. "a number in [0.2, 0.5] N·m/A (Koala BEAR rating)"."""
+        text = self.interval(unit=True)
+        if not (self.step and self.high - self.low == self.step):
+            text = f"{'an integer' if self.integer else 'a number'} in {text}"
+        return text + (f" ({self.why})" if self.why else "")
+
+    def narrowed(self, why: str, low: float = -math.inf, high: float = math.inf, high_open: bool = False) -> Bound:
+        """This range cut by a relation to another setting (`why` names it); the static ends still hold."""
+        if low <= self.low and high >= self.high:
+            return self
+        return replace(self, why=why, low=max(self.low, low), high=min(self.high, high),
+                       low_open=self.low_open and low <= self.low,
+                       high_open=self.high_open if high >= self.high else high_open)
+
+
+def _shown(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def checked_number(source: Any, key: str, value: Any, bound: Bound, error: type[ValueError] = ConfigError,
+                   also: str = "") -> Any:
+    """`value` if it is a number (an int for integer bounds; never a YAML boolean) inside `bound`, as a float (int);
+    otherwise one-line `error` "{source}: {key}: expected ..., got ...". `also` adds other accepted forms."""
+    kind = int if bound.integer else int | float
+    if isinstance(value, bool) or not isinstance(value, kind) or not bound.contains(value):
+        hint = ""
+        if isinstance(value, str):
+            try:
+                hint = " (YAML reads 1e-3 as text: write 1.0e-3)" if math.isfinite(float(value)) else ""
+            except ValueError:
+                pass
+        raise error(f"{source}: {key}: expected {bound.expected()}{also}, got {_shown(value)}{hint}")
+    return value if bound.integer else float(value)
+
+
+def read_yaml(path: Path, error: type[ValueError] = ConfigError, what: str = "file") -> Any:
+    """The YAML tree of a text file; one-line `error` naming the file when it cannot be read, is not UTF-8 text or
+    is not YAML."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot read the {what}: {exc.strerror or exc}") from None
+    try:
+        return yaml.safe_load(text)
+    except (yaml.YAMLError, ValueError) as exc:  # ValueError: an integer too long to convert
+        raise error(f"{path}: not valid YAML: {_yaml_problem(exc)}") from None
+
+
+def _yaml_problem(exc: Exception) -> str:
+    mark = getattr(exc, "problem_mark", None)
+    where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
+    return " ".join(f"{getattr(exc, 'problem', None) or exc}{where}".split())
+
+
+BEAR_RATED_TORQUE = 10.5  # N·m, Koala BEAR: 30 A x 0.35 N·m/A (BRUCE-OP)
+_TURN = 2 * math.pi
+_MIT_RANGES = {  # each end of a MIT frame field's span; wider spans leave the 12/16-bit fields too coarse
+    "p": Bound(-100.0, 100.0, "rad", "16-bit field: 3 mrad steps at ±100"),
+    "v": Bound(-100.0, 100.0, "rad/s", "12-bit field: 0.05 rad/s steps at ±100"),
+    "kp": Bound(0.0, 1000.0, "N·m/rad", "12-bit field"),
+    "kd": Bound(0.0, 100.0, "N·m·s/rad", "12-bit field"),
+    "t": Bound(-200.0, 200.0, "N·m", "12-bit field: 0.1 N·m steps at ±200"),
+}
+
+# Every numeric setting of a robot config: dotted key patterns ("*" one name, "[*]" one list index) -> Bound.
+# Relations to other settings narrow some further where they are read (docs/config_bounds.md, "Relations").
+BOUNDS: dict[str, Bound] = {
+    "rates.loop_hz": Bound(100, 10_000, "Hz", "PD/bus loop: slower destabilises the PD, no bus keeps up faster",
+                           integer=True),
+    "rates.policy_hz": Bound(1, 10_000, "Hz", "walking policy; must divide rates.loop_hz", integer=True),
+    "joints.position_limits.*[*]": Bound(-_TURN, _TURN, "rad", "a turn either way"),
+    "joints.torque_limits.*": Bound(0.0, 120.0, "N·m", "at most what the actuators reach at the joint",
+                                    low_open=True),
+    "joints.velocity_limits.*": Bound(0.0, 50.0, "rad/s", "above any BRUCE leg joint's speed", low_open=True),
+    "joints.standing_pose.*": Bound(-_TURN, _TURN, "rad", "inside the soft position limits"),
+    "gains.*.kp.*": Bound(0.0, 500.0, "N·m/rad", "MIT-drive kp span; at 500 a 0.02 rad error asks 10 N·m"),
+    "gains.*.kd.*": Bound(0.0, 5.0, "N·m·s/rad", "MIT-drive kd span; more is unstable at 1 kHz on light joints"),
+    "actuators.torque_limit": Bound(0.0, 60.0, "N·m", "per actuator, at most its rating", low_open=True),
+    "actuators.torque_per_amp": Bound(0.2, 0.5, "N·m/A", "Koala BEAR rating, nominal 0.35"),
+    "coupling.joint_from_actuator[*][*]": Bound(-10.0, 10.0, "", "transmission ratio (BRUCE: 0, ±0.5, ±1)"),
+    "arms.position_limits.*[*]": Bound(-_TURN, _TURN, "rad", "a turn either way"),
+    "arms.hold_pose.*": Bound(-_TURN, _TURN, "rad", "inside arms.position_limits"),
+    "safety.damping_kd": Bound(0.0, 5.0, "N·m·s/rad", "> 0 removes energy; more is unstable at 1 kHz",
+                               low_open=True),
+    "safety.damping_hold_s": Bound(0.0, 60.0, "s", "damping after a trip before release", low_open=True),
+    "safety.soft_start_s": Bound(0.0, 30.0, "s", "ramp to the standing pose", low_open=True),
+    "safety.torque_ramp_s": Bound(0.0, 5.0, "s", "torque fade-in; 0: none"),
+    "safety.position_margin": Bound(0.0, 0.5, "rad", "soft limits inside the hard ones"),
+    "safety.max_torque_rate": Bound(0.0, 1e5, "N·m/s", "torque slew limit", low_open=True),
+    "safety.tilt_limit_deg": Bound(0.0, 90.0, "deg", "0 trips at once, 90 is lying down", low_open=True,
+                                   high_open=True),
+    "safety.tilt_ticks": Bound(1, 1000, "ticks", "1 s at 1 kHz", integer=True),
+    "safety.max_sensor_age_s": Bound(0.0, 0.05, "s", "50 ms-old data is no feedback", low_open=True),
+    "safety.overrun_streak": Bound(1, 1000, "ticks", "1 s of late ticks at 1 kHz", integer=True),
+    "safety.reply_loss_max": Bound(0.0, 0.5, "", "share of one motor's replies", low_open=True),
+    "safety.reply_loss_window_s": Bound(0.05, 60.0, "s", "window of the reply-loss share"),
+    "policy.gait_period_s": Bound(0.1, 2.0, "s", "a step cycle", low_open=True),
+    "policy.gait_period_s[*][0]": Bound(-2.0, 2.0, "m/s", "vx of a cadence point"),
+    "policy.gait_period_s[*][1]": Bound(0.1, 2.0, "s", "a step cycle", low_open=True),
+    "pinn.lookahead_ticks": Bound(0, 50, "ticks", "50 ms of actuator latency", integer=True),
+    "buses.*.baud": Bound(9600, 12_000_000, "bit/s", "UART rates up to the FTDI's 12 Mbaud", integer=True),
+    "buses.bear.ids[*]": Bound(0, 253, "", "BEAR IDs; 254 is broadcast", integer=True),
+    "buses.bear.watchdog_s": Bound(0.005, 1.0, "s", "a lost host must end in damping"),
+    "buses.bear.watchdog_unit_s": Bound(1e-6, 1.0, "s", "seconds per watchdog count"),
+    "buses.dynamixel.ids[*]": Bound(0, 252, "", "Dynamixel Protocol 2.0 IDs", integer=True),
+    "buses.dynamixel.watchdog_s": Bound(0.02, 2.54, "s", "Bus Watchdog register 1..127 x 20 ms", step=0.02),
+    "buses.can.bitrate": Bound(10_000, 1_000_000, "bit/s", "classic CAN", integer=True),
+    "buses.can.host_id": Bound(0, 0x7FF, "", "standard CAN ID", integer=True),
+    "buses.can.timeout_s": Bound(0.0, 0.1, "s", "per-tick reply wait", low_open=True),
+    "buses.can.motors.*.id": Bound(1, 255, "", "MIT motor CAN ID", integer=True),
+    "buses.can.motors.*.gear": Bound(0.0, 20.0, "", "actuator output per motor output", low_open=True),
+    "buses.can.motors.*.sign": Bound(-1, 1, "", "motor direction", step=2),
+    "buses.can.motors.*.offset": Bound(-_TURN, _TURN, "rad", "actuator position at the motor's zero"),
+    **{f"{where}.{name}[*]": bound for where in ("buses.can.ranges", "buses.can.motors.*.ranges")
+       for name, bound in _MIT_RANGES.items()},
+}
+
+
+def _key_pattern(pattern: str) -> re.Pattern:
+    return re.compile(re.escape(pattern).replace(r"\[\*\]", r"\[\d+\]").replace(r"\*", r"[^.\[\]]+"))
+
+
+_PATTERNS = [(_key_pattern(pattern), bound) for pattern, bound in BOUNDS.items()]
+
+
+@functools.lru_cache(maxsize=4096)
+def bound_for(key: str) -> Bound:
+    """The `BOUNDS` entry of a concrete dotted key, e.g. "joints.velocity_limits.r_knee"."""
+    for pattern, bound in _PATTERNS:
+        if pattern.fullmatch(key):
+            return bound
+    raise LookupError(f"no BOUNDS entry for {key}")
+
+
+_LOOK_UP = object()  # "read the value at the key", distinct from a YAML null
+
+
 class _Reader:
     """Typed access to a parsed YAML tree; every failure names the file and the dotted key."""
 
@@ -167,7 +349,7 @@ class _Reader:
         self.data = data
 
     def fail(self, key: str, expected: str, got: Any = None, *, show_got: bool = True) -> ConfigError:
-        tail = f", got {got!r}" if show_got else ""
+        tail = f", got {_shown(got)}" if show_got else ""
         return ConfigError(f"{self.path}: {key}: expected {expected}{tail}")
 
     def node(self, key: str) -> Any:
@@ -192,21 +374,10 @@ class _Reader:
                 raise ConfigError(f"{self.path}: {key}.{unknown[0]}: unknown key (expected one of {sorted(allowed)})")
         return node
 
-    def number(self, key: str, *, positive: bool = False) -> float:
-        value = self.node(key)
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise self.fail(key, "a number", value)
-        if positive and not value > 0:
-            raise self.fail(key, "a number > 0", value)
-        return float(value)
-
-    def integer(self, key: str, *, positive: bool = False) -> int:
-        value = self.node(key)
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise self.fail(key, "an integer", value)
-        if positive and value <= 0:
-            raise self.fail(key, "an integer > 0", value)
-        return value
+    def number(self, key: str, value: Any = _LOOK_UP, bound: Bound | None = None, also: str = "") -> Any:
+        """The number at `key` (or `value`, already looked up) inside `bound`, by default its `BOUNDS` entry."""
+        value = self.node(key) if value is _LOOK_UP else value
+        return checked_number(self.path, key, value, bound or bound_for(key), also=also)
 
     def string(self, key: str) -> str:
         value = self.node(key)
@@ -224,20 +395,19 @@ class _Reader:
             raise self.fail(key, "unique names", value)
         return tuple(value)
 
-    def vector(self, key: str, length: int, value: Any = None) -> np.ndarray:
+    def vector(self, key: str, length: int, value: Any = _LOOK_UP) -> np.ndarray:
         """A list of `length` numbers at `key` (or `value`, already looked up, reported as `key`)."""
-        value = self.node(key) if value is None else value
+        value = self.node(key) if value is _LOOK_UP else value
         if not isinstance(value, list):
             raise self.fail(key, f"a list of {length} numbers", value)
         if len(value) != length:
             raise self.fail(key, f"a list of {length} numbers, got {len(value)} entries", show_got=False)
-        for i, v in enumerate(value):
-            if isinstance(v, bool) or not isinstance(v, int | float):
-                raise self.fail(f"{key}[{i}]", "a number", v)
-        return np.asarray(value, dtype=np.float64)
+        return np.array([self.number(f"{key}[{i}]", v) for i, v in enumerate(value)], dtype=np.float64)
 
-    def per_joint(self, key: str, joints: tuple[str, ...], width: int = 1) -> np.ndarray:
-        """A mapping joint name -> number (or [numbers] of `width`), returned in `joints` order."""
+    def per_joint(self, key: str, joints: tuple[str, ...], width: int = 1,
+                  bounds: list[Bound] | None = None) -> np.ndarray:
+        """A mapping joint name -> number (or [numbers] of `width`), returned in `joints` order; `bounds`: one per
+        joint, narrower than the `BOUNDS` entry."""
         node = self.mapping(key)
         unknown = [name for name in node if name not in joints]
         if unknown:
@@ -247,7 +417,8 @@ class _Reader:
             raise ConfigError(f"{self.path}: {key}.{missing[0]}: missing joint (every joint of {list(joints)} "
                               "needs a value)")
         if width == 1:
-            return np.array([self.number(f"{key}.{name}") for name in joints])
+            return np.array([self.number(f"{key}.{name}", bound=bounds[i] if bounds else None)
+                             for i, name in enumerate(joints)])
         return np.stack([self.vector(f"{key}.{name}", width) for name in joints])
 
 
@@ -267,37 +438,61 @@ def _limits(r: _Reader, key: str, names: tuple[str, ...]) -> tuple[np.ndarray, n
     return pairs[:, 0].copy(), pairs[:, 1].copy()
 
 
+def _inside(key: str, names: tuple[str, ...], lower: np.ndarray, upper: np.ndarray, why: str) -> list[Bound]:
+    """Per-joint bounds of `key` narrowed to [lower, upper] (`why`: where those come from, "{name}" filled in)."""
+    return [BOUNDS[f"{key}.*"].narrowed(why.format(name=name), lo, hi)
+            for name, lo, hi in zip(names, lower, upper, strict=True)]
+
+
 def _gains(r: _Reader, key: str, joints: tuple[str, ...]) -> PdGains:
     r.mapping(key, {"kp", "kd"})
-    kp, kd = r.per_joint(f"{key}.kp", joints), r.per_joint(f"{key}.kd", joints)
-    for name, values in (("kp", kp), ("kd", kd)):
-        if np.any(values < 0):
-            bad = joints[int(np.argmax(values < 0))]
-            raise r.fail(f"{key}.{name}.{bad}", "a gain >= 0", float(values[joints.index(bad)]))
-    return PdGains(kp=kp, kd=kd)
+    return PdGains(kp=r.per_joint(f"{key}.kp", joints), kd=r.per_joint(f"{key}.kd", joints))
 
 
-def _serial(r: _Reader, key: str, with_ids: bool, n_ids: int = 0, watchdog_unit_s: float | None = None) -> SerialBus:
-    """`watchdog_unit_s`: the register's fixed unit (Dynamixel); None: `watchdog_unit_s` is a key (BEAR)."""
-    allowed = {"port", "baud", "ids", "watchdog_s", "watchdog_unit_s"} if with_ids else {"port", "baud"}
-    if watchdog_unit_s is not None:
-        allowed.discard("watchdog_unit_s")
+def _coupling(r: _Reader, n: int) -> np.ndarray:
+    key = "coupling.joint_from_actuator"
+    r.mapping("coupling", {"joint_from_actuator"})
+    rows = r.node(key)
+    if not isinstance(rows, list) or len(rows) != n:
+        got = len(rows) if isinstance(rows, list) else rows
+        raise r.fail(key, f"a {n}x{n} matrix (one row per joint), got {got!r} rows", show_got=False)
+    matrix = np.stack([r.vector(f"{key}[{i}]", n, row) for i, row in enumerate(rows)])
+    singular = np.linalg.svd(matrix, compute_uv=False)
+    if not singular[-1] > 1e-6 * singular[0]:  # a near-singular map turns small actuator errors into huge joint ones
+        raise r.fail(key, "an invertible matrix (condition number < 1e6)", "singular")
+    return matrix
+
+
+def _serial(r: _Reader, key: str, n_ids: int | None = None, watchdog_unit_s: float | None = None,
+            min_watchdog_s: float = 0.0) -> SerialBus:
+    """A serial bus; with `n_ids`, its device IDs and motor-side watchdog. `watchdog_unit_s`: the register's fixed
+    unit (Dynamixel: `watchdog_s` optional, 0 when left out); None: a `watchdog_unit_s` key (BEAR: `watchdog_s`
+    required and at least `min_watchdog_s`, since a lost host must end in damping)."""
+    allowed = {"port", "baud"}
+    if n_ids is not None:
+        allowed |= {"ids", "watchdog_s"} | ({"watchdog_unit_s"} if watchdog_unit_s is None else set())
     node = r.mapping(key, allowed)
-    ids: tuple[int, ...] = ()
-    if with_ids:
-        raw = r.node(f"{key}.ids")
-        if not isinstance(raw, list) or not all(isinstance(i, int) and not isinstance(i, bool) for i in raw):
-            raise r.fail(f"{key}.ids", "a list of integer device IDs", raw)
-        if len(raw) != n_ids:
-            raise r.fail(f"{key}.ids", f"a list of {n_ids} IDs, got {len(raw)}", show_got=False)
-        if len(set(raw)) != len(raw) or not all(0 <= i < 0xFE for i in raw):
-            raise r.fail(f"{key}.ids", "unique IDs in 0..253", raw)
-        ids = tuple(raw)
-    watchdog_s = r.number(f"{key}.watchdog_s") if "watchdog_s" in node else 0.0
+    bus = SerialBus(port=r.string(f"{key}.port"), baud=r.number(f"{key}.baud"))
+    if n_ids is None:
+        return bus
+    raw = r.node(f"{key}.ids")
+    if not isinstance(raw, list):
+        raise r.fail(f"{key}.ids", "a list of integer device IDs", raw)
+    if len(raw) != n_ids:
+        raise r.fail(f"{key}.ids", f"a list of {n_ids} IDs, got {len(raw)}", show_got=False)
+    ids = tuple(r.number(f"{key}.ids[{i}]", device_id) for i, device_id in enumerate(raw))
+    if len(set(ids)) != len(ids):
+        raise r.fail(f"{key}.ids", "unique IDs", raw)
     if watchdog_unit_s is None:
-        watchdog_unit_s = r.number(f"{key}.watchdog_unit_s", positive=True) if "watchdog_unit_s" in node else 0.001
-    return SerialBus(port=r.string(f"{key}.port"), baud=r.integer(f"{key}.baud", positive=True), ids=ids,
-                     watchdog_s=watchdog_s, watchdog_unit_s=watchdog_unit_s if with_ids else 0.0)
+        watchdog_s = r.number(f"{key}.watchdog_s", bound=bound_for(f"{key}.watchdog_s").narrowed(
+            "at least 2 ticks of rates.loop_hz, or one late tick trips it", low=min_watchdog_s))
+        watchdog_unit_s = 0.001
+        if "watchdog_unit_s" in node:
+            watchdog_unit_s = r.number(f"{key}.watchdog_unit_s", bound=bound_for(f"{key}.watchdog_unit_s").narrowed(
+                f"at most {key}.watchdog_s: one register count", high=watchdog_s))
+    else:
+        watchdog_s = r.number(f"{key}.watchdog_s") if "watchdog_s" in node else 0.0
+    return replace(bus, ids=ids, watchdog_s=watchdog_s, watchdog_unit_s=watchdog_unit_s)
 
 
 _CAN_KEYS = {"interface", "channel", "bitrate", "host_id", "timeout_s", "motor_type", "ranges", "motors"}
@@ -311,37 +506,32 @@ def _can_ranges(r: _Reader, key: str) -> MitRanges:
     for name in _CAN_RANGE_KEYS:
         lo, hi = (float(x) for x in r.vector(f"{key}.{name}", 2))
         gain = name in ("kp", "kd")
-        if not lo < hi or (gain and lo < 0):
-            raise r.fail(f"{key}.{name}", "[min, max] with min < max" + (" and min >= 0" if gain else ""), [lo, hi])
+        if not (lo < hi if gain else lo < 0.0 < hi):  # a motor moves and pushes both ways; gains are >= 0
+            raise r.fail(f"{key}.{name}", "[min, max] with min < max" if gain else "[min, max] with min < 0 < max",
+                         [lo, hi])
         pairs[name] = (lo, hi)
     return MitRanges(**pairs)
 
 
 def _can_motor(r: _Reader, key: str, slot: str, channel: str, default_ranges: MitRanges | None) -> CanMotor:
     node = r.mapping(key, _CAN_MOTOR_KEYS)
-    motor_id = r.integer(f"{key}.id")
-    gear = r.number(f"{key}.gear", positive=True) if "gear" in node else 1.0
-    sign = r.number(f"{key}.sign") if "sign" in node else 1.0
-    if sign not in (1.0, -1.0):
-        raise r.fail(f"{key}.sign", "1 or -1", node["sign"])
-    offset = r.number(f"{key}.offset") if "offset" in node else 0.0
     if "ranges" in node:
         ranges = _can_ranges(r, f"{key}.ranges")
     elif default_ranges is None:
         raise ConfigError(f"{r.path}: {key}.ranges: missing key (and no buses.can.ranges default)")
     else:
         ranges = default_ranges
-    return CanMotor(slot=slot, channel=str(node.get("channel", channel)), id=motor_id, gear=gear, sign=sign,
-                    offset=offset, ranges=ranges)
+    return CanMotor(slot=slot, channel=str(node.get("channel", channel)), id=r.number(f"{key}.id"),
+                    gear=r.number(f"{key}.gear") if "gear" in node else 1.0,
+                    sign=r.number(f"{key}.sign") if "sign" in node else 1.0,
+                    offset=r.number(f"{key}.offset") if "offset" in node else 0.0, ranges=ranges)
 
 
 def _can(r: _Reader, joints: tuple[str, ...]) -> CanBus:
     """buses.can: the interface and channel, and optionally the legs on MIT-mode CAN motors (`motors`)."""
     node = r.mapping("buses.can", _CAN_KEYS)
     channel = str(r.node("buses.can.channel"))
-    host_id = r.integer("buses.can.host_id") if "host_id" in node else 0
-    if not 0 <= host_id <= 0x7FF:
-        raise r.fail("buses.can.host_id", "a standard CAN ID 0..2047", host_id)
+    host_id = r.number("buses.can.host_id") if "host_id" in node else 0
     motors: tuple[CanMotor, ...] = ()
     if "motors" in node:
         default_ranges = _can_ranges(r, "buses.can.ranges") if "ranges" in node else None
@@ -355,46 +545,57 @@ def _can(r: _Reader, joints: tuple[str, ...]) -> CanBus:
             raise ConfigError(f"{r.path}: buses.can.motors.{missing[0]}: missing joint (every joint slot of "
                               f"{list(joints)} needs a motor)")
         motors = tuple(_can_motor(r, f"buses.can.motors.{name}", name, channel, default_ranges) for name in joints)
-        ids = [m.id for m in motors]
-        if len(set(ids)) != len(ids) or not all(1 <= i <= 0xFF and i != host_id for i in ids):
-            raise r.fail("buses.can.motors", f"unique motor IDs in 1..255, other than host_id {host_id}", ids)
+        first = {}  # motor ID -> the slot that has it
+        for m in motors:
+            clash = first.setdefault(m.id, m.slot)
+            if clash != m.slot or m.id == host_id:
+                also = f"buses.can.motors.{clash}.id" if clash != m.slot else "buses.can.host_id"
+                raise r.fail(f"buses.can.motors.{m.slot}.id", f"unique motor IDs, other than buses.can.host_id "
+                             f"({host_id}), got {m.id} (as {also})", show_got=False)
     elif "ranges" in node:
         _can_ranges(r, "buses.can.ranges")
     return CanBus(
         interface=r.string("buses.can.interface"),
         channel=channel,
-        bitrate=r.integer("buses.can.bitrate", positive=True) if "bitrate" in node else None,
+        bitrate=r.number("buses.can.bitrate") if "bitrate" in node else None,
         host_id=host_id,
-        timeout_s=r.number("buses.can.timeout_s", positive=True) if "timeout_s" in node else None,
+        timeout_s=r.number("buses.can.timeout_s") if "timeout_s" in node else None,
         motor_type=r.string("buses.can.motor_type") if "motor_type" in node else None,
         motors=motors,
     )
 
 
+def _actuators(r: _Reader, can: CanBus) -> tuple[float, float]:
+    """actuators.torque_limit inside the rating of the leg bus's actuators, and torque_per_amp."""
+    r.mapping("actuators", {"torque_limit", "torque_per_amp"})
+    torque_per_amp = r.number("actuators.torque_per_amp")
+    if can.motors:  # the torque a motor's frames can carry, at the actuator: gear x the smaller end of ranges.t
+        ratings = [m.gear * min(-m.ranges.t[0], m.ranges.t[1]) for m in can.motors]
+        weakest = int(np.argmin(ratings))
+        rating, key = ratings[weakest], f"buses.can.motors.{can.motors[weakest].slot}"
+        ranges = f"{key}.ranges" if "ranges" in r.node(key) else "buses.can.ranges"
+        why = f"CAN motor rating: {key}.gear x |{ranges}.t|"
+    else:  # the current sent is torque / torque_per_amp: never beyond the BEAR's rated current
+        rating = min(BEAR_RATED_TORQUE, RATED_CURRENT_A * torque_per_amp)
+        why = f"Koala BEAR: {RATED_CURRENT_A:g} A x actuators.torque_per_amp, at most {BEAR_RATED_TORQUE:g}"
+    bound = BOUNDS["actuators.torque_limit"].narrowed(why, high=rating)
+    return r.number("actuators.torque_limit", bound=bound), torque_per_amp
+
+
 _TOP_KEYS = {"name", "mjcf", "rates", "joints", "gains", "actuators", "coupling", "arms", "safety", "policy", "pinn",
              "buses"}
 
-_SAFETY_KEYS = {"damping_kd", "damping_hold_s", "soft_start_s", "torque_ramp_s", "position_margin", "max_torque_rate",
-                "tilt_limit_deg", "tilt_ticks", "max_sensor_age_s", "overrun_streak", "reply_loss_max",
-                "reply_loss_window_s"}
+_SAFETY_FIELDS = tuple(f.name for f in fields(SafetyConfig))
 
 
-def _safety(r: _Reader) -> SafetyConfig:
-    r.mapping("safety", _SAFETY_KEYS)
-    return SafetyConfig(
-        damping_kd=r.number("safety.damping_kd"),
-        damping_hold_s=r.number("safety.damping_hold_s"),
-        soft_start_s=r.number("safety.soft_start_s", positive=True),
-        torque_ramp_s=r.number("safety.torque_ramp_s"),
-        position_margin=r.number("safety.position_margin"),
-        max_torque_rate=r.number("safety.max_torque_rate", positive=True),
-        tilt_limit_deg=r.number("safety.tilt_limit_deg", positive=True),
-        tilt_ticks=r.integer("safety.tilt_ticks", positive=True),
-        max_sensor_age_s=r.number("safety.max_sensor_age_s", positive=True),
-        overrun_streak=r.integer("safety.overrun_streak", positive=True),
-        reply_loss_max=r.number("safety.reply_loss_max", positive=True),
-        reply_loss_window_s=r.number("safety.reply_loss_window_s", positive=True),
-    )
+def _safety(r: _Reader, joints: tuple[str, ...], q_lower: np.ndarray, q_upper: np.ndarray) -> SafetyConfig:
+    r.mapping("safety", set(_SAFETY_FIELDS))
+    half = 0.5 * (q_upper - q_lower)
+    narrowest = int(np.argmin(half))
+    margin = BOUNDS["safety.position_margin"].narrowed(
+        f"less than half of joints.position_limits.{joints[narrowest]}", high=half[narrowest], high_open=True)
+    return SafetyConfig(**{name: r.number(f"safety.{name}", bound=margin if name == "position_margin" else None)
+                           for name in _SAFETY_FIELDS})
 
 
 def _model_file(r: _Reader, key: str) -> Path | None:
@@ -412,77 +613,46 @@ def _model_file(r: _Reader, key: str) -> Path | None:
 def _gait_cadence(r: _Reader) -> tuple[tuple[float, float], ...]:
     key = "policy.gait_period_s"
     value = r.node(key)
-    if isinstance(value, int | float) and not isinstance(value, bool):
-        return ((0.0, r.number(key, positive=True)),)
-    expected = "a period > 0 (s) or a list of [vx (m/s), period > 0 (s)] pairs in increasing vx"
-    if not isinstance(value, list) or not value:
-        raise r.fail(key, expected, value)
+    if not isinstance(value, list):
+        return ((0.0, r.number(key, also=" or a list of [vx (m/s), period (s)] pairs")),)
+    if not value:
+        raise r.fail(key, "a period (s) or a list of [vx (m/s), period (s)] pairs in increasing vx", value)
     points = []
-    for point in value:
-        if (not isinstance(point, list) or len(point) != 2
-                or any(isinstance(x, bool) or not isinstance(x, int | float) for x in point) or not point[1] > 0):
-            raise r.fail(key, expected, point)
-        points.append((float(point[0]), float(point[1])))
+    for i, point in enumerate(value):
+        if not isinstance(point, list) or len(point) != 2:
+            raise r.fail(f"{key}[{i}]", "a [vx (m/s), period (s)] pair", point)
+        points.append((r.number(f"{key}[{i}][0]", point[0]), r.number(f"{key}[{i}][1]", point[1])))
     if any(b[0] <= a[0] for a, b in itertools.pairwise(points)):
-        raise r.fail(key, expected, value)
+        raise r.fail(key, "[vx, period] pairs in increasing vx", value)
     return tuple(points)
 
 
 def _models(r: _Reader) -> ModelsConfig:
     r.mapping("policy", {"model", "gait_period_s"})
     pinn = r.mapping("pinn", {"model", "lookahead_ticks"})
-    lookahead = 0
-    if "lookahead_ticks" in pinn:
-        lookahead = r.integer("pinn.lookahead_ticks")
-        if lookahead < 0:
-            raise r.fail("pinn.lookahead_ticks", "an integer >= 0 (0: the paper's one-step reference)", lookahead)
     return ModelsConfig(policy=_model_file(r, "policy.model"),
                         gait_period_s=_gait_cadence(r),
-                        pinn=_model_file(r, "pinn.model"), pinn_lookahead_ticks=lookahead)
+                        pinn=_model_file(r, "pinn.model"),
+                        pinn_lookahead_ticks=r.number("pinn.lookahead_ticks") if "lookahead_ticks" in pinn else 0)
 
 
 def parse_config(data: Any, path: Path) -> RobotConfig:
     r = _Reader(path, data)
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: <top>: expected a mapping of sections {sorted(_TOP_KEYS)}, got {data!r}")
+        raise ConfigError(f"{path}: <top>: expected a mapping of sections {sorted(_TOP_KEYS)}, got {_shown(data)}")
     unknown = sorted(set(data) - _TOP_KEYS)
     if unknown:
         raise ConfigError(f"{path}: {unknown[0]}: unknown key (expected one of {sorted(_TOP_KEYS)})")
 
     r.mapping("rates", {"loop_hz", "policy_hz"})
-    loop_hz, policy_hz = r.integer("rates.loop_hz", positive=True), r.integer("rates.policy_hz", positive=True)
+    loop_hz, policy_hz = r.number("rates.loop_hz"), r.number("rates.policy_hz")
     if loop_hz % policy_hz:
         raise r.fail("rates.policy_hz", f"a divisor of rates.loop_hz ({loop_hz})", policy_hz)
 
     r.mapping("joints", {"names", "position_limits", "torque_limits", "velocity_limits", "standing_pose"})
     joints = r.names("joints.names")
-    n = len(joints)
     q_lower, q_upper = _limits(r, "joints.position_limits", joints)
-    tau_limit = r.per_joint("joints.torque_limits", joints)
-    qd_limit = r.per_joint("joints.velocity_limits", joints)
-    for key, values in (("joints.torque_limits", tau_limit), ("joints.velocity_limits", qd_limit)):
-        if np.any(values <= 0):
-            raise r.fail(f"{key}.{joints[int(np.argmax(values <= 0))]}", "a limit > 0", float(values.min()))
-    standing = r.per_joint("joints.standing_pose", joints)
-    outside = (standing < q_lower) | (standing > q_upper)
-    if outside.any():
-        name = joints[int(np.argmax(outside))]
-        raise r.fail(f"joints.standing_pose.{name}", "a position inside joints.position_limits",
-                     float(standing[joints.index(name)]))
-
-    r.mapping("gains", {"eq8", "eq9"})
-    eq8, eq9 = _gains(r, "gains.eq8", joints), _gains(r, "gains.eq9", joints)
-
-    r.mapping("actuators", {"torque_limit", "torque_per_amp"})
-    r.mapping("coupling", {"joint_from_actuator"})
-    rows = r.node("coupling.joint_from_actuator")
-    if not isinstance(rows, list) or len(rows) != n:
-        got = len(rows) if isinstance(rows, list) else rows
-        raise r.fail("coupling.joint_from_actuator", f"a {n}x{n} matrix (one row per joint), got {got!r} rows",
-                     show_got=False)
-    matrix = np.stack([r.vector(f"coupling.joint_from_actuator[{i}]", n, row) for i, row in enumerate(rows)])
-    if abs(np.linalg.det(matrix)) < 1e-9:
-        raise r.fail("coupling.joint_from_actuator", "an invertible matrix", "singular", show_got=True)
+    matrix = _coupling(r, len(joints))
 
     r.mapping("arms", {"names", "position_limits", "hold_pose"})
     arm_names = r.names("arms.names")
@@ -490,16 +660,31 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
     if clash:
         raise r.fail("arms.names", "names distinct from joints.names", sorted(clash))
     arm_lower, arm_upper = _limits(r, "arms.position_limits", arm_names)
-    hold = r.per_joint("arms.hold_pose", arm_names)
+    hold = r.per_joint("arms.hold_pose", arm_names, bounds=_inside(
+        "arms.hold_pose", arm_names, arm_lower, arm_upper, "inside arms.position_limits.{name}"))
 
     r.mapping("buses", {"bear", "dynamixel", "sense", "can"})
     buses = Buses(
-        bear=_serial(r, "buses.bear", with_ids=True, n_ids=n),
-        dynamixel=_serial(r, "buses.dynamixel", with_ids=True, n_ids=len(arm_names), watchdog_unit_s=0.02),
-        sense=_serial(r, "buses.sense", with_ids=False),
+        bear=_serial(r, "buses.bear", n_ids=len(joints), min_watchdog_s=2.0 / loop_hz),
+        dynamixel=_serial(r, "buses.dynamixel", n_ids=len(arm_names), watchdog_unit_s=0.02),
+        sense=_serial(r, "buses.sense"),
         can=_can(r, joints),
     )
+    torque_limit, torque_per_amp = _actuators(r, buses.can)
 
+    # What the actuators reach at each joint: tau_joint = A^T tau_m (A = B^-1), each |tau_m| <= torque_limit.
+    reach = torque_limit * np.abs(np.linalg.inv(matrix)).sum(axis=0) * (1.0 + 1e-9)
+    tau_limit = r.per_joint("joints.torque_limits", joints, bounds=_inside(
+        "joints.torque_limits", joints, np.zeros(len(joints)), reach,
+        "what actuators.torque_limit reaches at the joint through coupling.joint_from_actuator"))
+    qd_limit = r.per_joint("joints.velocity_limits", joints)
+    safety = _safety(r, joints, q_lower, q_upper)
+    margin = safety.position_margin
+    standing = r.per_joint("joints.standing_pose", joints, bounds=_inside(
+        "joints.standing_pose", joints, q_lower + margin, q_upper - margin,
+        "inside joints.position_limits.{name} less safety.position_margin"))
+
+    r.mapping("gains", {"eq8", "eq9"})
     return RobotConfig(
         path=path,
         name=r.string("name"),
@@ -512,13 +697,13 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
         tau_limit=tau_limit,
         qd_limit=qd_limit,
         standing_pose=standing,
-        eq8=eq8,
-        eq9=eq9,
-        actuator_torque_limit=r.number("actuators.torque_limit", positive=True),
-        torque_per_amp=r.number("actuators.torque_per_amp", positive=True),
+        eq8=_gains(r, "gains.eq8", joints),
+        eq9=_gains(r, "gains.eq9", joints),
+        actuator_torque_limit=torque_limit,
+        torque_per_amp=torque_per_amp,
         coupling=Coupling(matrix),
         arms=ArmConfig(names=arm_names, lower=arm_lower, upper=arm_upper, hold_pose=hold),
-        safety=_safety(r),
+        safety=safety,
         models=_models(r),
         buses=buses,
         raw=data,
@@ -542,7 +727,10 @@ def apply_overrides(data: dict, overrides: list[str], path: Path) -> dict:
                 parent = ".".join(parts[:depth]) or "<top>"
                 raise ConfigError(f"{path}: {key}: no such key to --set (nothing named {part!r} under {parent})")
             if depth == len(parts) - 1:
-                node[part] = yaml.safe_load(text) if text else ""
+                try:
+                    node[part] = yaml.safe_load(text) if text else ""
+                except (yaml.YAMLError, ValueError) as exc:
+                    raise ConfigError(f"{path}: --set {key}: not a valid YAML value: {_yaml_problem(exc)}") from None
             else:
                 node = node[part]
     return data
@@ -554,6 +742,8 @@ def resolve_config_path(path: str | Path = DEFAULT_CONFIG) -> Path:
     path = Path(path)
     if path.is_file():
         return path.resolve()
+    if path.is_dir():
+        raise ConfigError(f"{path}: a directory, not a robot config file")
     if not path.is_absolute() and path.parent.as_posix() == "configs/robots":
         packaged = resources.files("configs.robots") / path.name
         if packaged.is_file():
@@ -563,10 +753,7 @@ def resolve_config_path(path: str | Path = DEFAULT_CONFIG) -> Path:
 
 def load_config(path: str | Path = DEFAULT_CONFIG, overrides: list[str] | None = None) -> RobotConfig:
     resolved = resolve_config_path(path)
-    try:
-        data = yaml.safe_load(resolved.read_text())
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{resolved}: not valid YAML: {exc}") from exc
+    data = read_yaml(resolved, what="robot config")
     if overrides:
         data = apply_overrides(data, overrides, resolved)
     return parse_config(data, resolved)

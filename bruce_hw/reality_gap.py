@@ -26,53 +26,57 @@ from typing import Any
 
 import mujoco
 import numpy as np
-import yaml
 
+from bruce_hw.config import Bound, checked_number, read_yaml
 from bruce_hw.types import RobotState
 
 GAPS_PACKAGE = "configs.gaps"
-
-# How a value is checked: what the error says it expected, and the test.
-_CHECKS: dict[str, tuple[str, Callable[[float], bool]]] = {
-    "nonneg": ("a number >= 0", lambda v: v >= 0.0),
-    "positive": ("a number > 0", lambda v: v > 0.0),
-    "fraction": ("a number in (0, 1]", lambda v: 0.0 < v <= 1.0),
-    "any": ("a finite number", lambda v: True),
-}
 
 
 class GapError(ValueError):
     """A reality-gap profile that cannot be used; the message names the file and the key."""
 
 
-def _gap_field(key: str, check: str, shape: str = "scalar", default: float = 0.0) -> Any:
-    """A gap parameter: its YAML key (section.name), its check and its shape (scalar, per_joint or vec3)."""
-    return field(default=default, metadata={"key": key, "check": check, "shape": shape})
+def _gap_field(key: str, bound: Bound, shape: str = "scalar", default: float = 0.0) -> Any:
+    """A gap parameter: its YAML key (section.name), its valid range and its shape (scalar, per_joint or vec3)."""
+    return field(default=default, metadata={"key": key, "bound": bound, "shape": shape})
+
+
+# The ranges bound a plausible difference between BRUCE and its MJCF: a value beyond is a broken robot (a dead link,
+# a jammed gear, a different robot), not a reality gap. Scales are of the MJCF's values; noise is a std.
+_LATENCY = Bound(0.0, 0.05, "s", "50 ticks at 1 kHz: beyond is a dead link")
+_SCALE = Bound(0.5, 2.0, "", "of the MJCF's value")
 
 
 @dataclass(frozen=True)
 class RealityGap:
     source: str = field(default="RealityGap", compare=False)  # where it came from (the YAML file), for errors
     seed: int = 0               # the noise generator's seed (numpy default_rng)
-    actuator_latency_s: float = _gap_field("actuator.latency_s", "nonneg")
-    actuator_time_constant_s: float = _gap_field("actuator.time_constant_s", "nonneg")
-    torque_limit_scale: float = _gap_field("actuator.torque_limit_scale", "fraction", default=1.0)
-    coulomb: Any = _gap_field("friction.coulomb", "nonneg", "per_joint")          # N m
-    viscous: Any = _gap_field("friction.viscous", "nonneg", "per_joint")          # N m s/rad
-    mass_scale: float = _gap_field("inertia.mass_scale", "positive", default=1.0)
-    inertia_scale: float = _gap_field("inertia.inertia_scale", "positive", default=1.0)
-    armature_scale: Any = _gap_field("inertia.armature_scale", "positive", "per_joint", default=1.0)
-    armature_add: Any = _gap_field("inertia.armature_add", "nonneg", "per_joint")  # kg m^2
-    q_noise: Any = _gap_field("encoder.q_noise", "nonneg", "per_joint")           # rad, std
-    q_bias: Any = _gap_field("encoder.q_bias", "any", "per_joint")                # rad
-    qd_noise: Any = _gap_field("encoder.qd_noise", "nonneg", "per_joint")         # rad/s, std
-    qd_bias: Any = _gap_field("encoder.qd_bias", "any", "per_joint")              # rad/s
-    gyro_noise: float = _gap_field("imu.gyro_noise", "nonneg")                    # rad/s, std per axis
-    gyro_bias: Any = _gap_field("imu.gyro_bias", "any", "vec3")                   # rad/s
-    accel_noise: float = _gap_field("imu.accel_noise", "nonneg")                  # m/s^2, std per axis
-    accel_bias: Any = _gap_field("imu.accel_bias", "any", "vec3")                 # m/s^2
-    orientation_noise: float = _gap_field("imu.orientation_noise", "nonneg")      # rad, std per axis
-    sensor_latency_s: float = _gap_field("sensor.latency_s", "nonneg")
+    actuator_latency_s: float = _gap_field("actuator.latency_s", _LATENCY)
+    actuator_time_constant_s: float = _gap_field(
+        "actuator.time_constant_s", Bound(0.0, 0.05, "s", "torque lag; 50 ms is a 3 Hz torque bandwidth"))
+    torque_limit_scale: float = _gap_field(
+        "actuator.torque_limit_scale", Bound(0.5, 1.0, "", "of the rated torque: kt spread, heat, battery sag"),
+        default=1.0)
+    coulomb: Any = _gap_field(
+        "friction.coulomb", Bound(0.0, 1.0, "N·m", "10 % of a BEAR's torque: beyond, a jammed gear"), "per_joint")
+    viscous: Any = _gap_field(
+        "friction.viscous", Bound(0.0, 0.5, "N·m·s/rad", "7.5 N·m at 15 rad/s"), "per_joint")
+    mass_scale: float = _gap_field("inertia.mass_scale", _SCALE, default=1.0)
+    inertia_scale: float = _gap_field("inertia.inertia_scale", _SCALE, default=1.0)
+    armature_scale: Any = _gap_field("inertia.armature_scale", _SCALE, "per_joint", default=1.0)
+    armature_add: Any = _gap_field(
+        "inertia.armature_add", Bound(0.0, 0.01, "kg·m²", "5 BEAR rotors' reflected inertia"), "per_joint")
+    q_noise: Any = _gap_field("encoder.q_noise", Bound(0.0, 0.05, "rad", "3 deg std"), "per_joint")
+    q_bias: Any = _gap_field("encoder.q_bias", Bound(-0.1, 0.1, "rad", "6 deg: beyond, homing failed"), "per_joint")
+    qd_noise: Any = _gap_field("encoder.qd_noise", Bound(0.0, 1.0, "rad/s", "std"), "per_joint")
+    qd_bias: Any = _gap_field("encoder.qd_bias", Bound(-1.0, 1.0, "rad/s", "offset"), "per_joint")
+    gyro_noise: float = _gap_field("imu.gyro_noise", Bound(0.0, 0.5, "rad/s", "std per axis"))
+    gyro_bias: Any = _gap_field("imu.gyro_bias", Bound(-0.5, 0.5, "rad/s", "30 deg/s drift"), "vec3")
+    accel_noise: float = _gap_field("imu.accel_noise", Bound(0.0, 2.0, "m/s²", "std per axis"))
+    accel_bias: Any = _gap_field("imu.accel_bias", Bound(-2.0, 2.0, "m/s²", "a 12 deg calibration tilt"), "vec3")
+    orientation_noise: float = _gap_field("imu.orientation_noise", Bound(0.0, 0.1, "rad", "6 deg std per axis"))
+    sensor_latency_s: float = _gap_field("sensor.latency_s", _LATENCY)
 
     def __post_init__(self) -> None:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
@@ -106,32 +110,19 @@ class RealityGap:
 _FIELDS = {f.name: f for f in fields(RealityGap) if "key" in f.metadata}
 _ATTR_OF_KEY = {f.metadata["key"]: name for name, f in _FIELDS.items()}
 SECTIONS = tuple(dict.fromkeys(key.split(".")[0] for key in _ATTR_OF_KEY))
-
-
-def _number(source: str, key: str, value: Any, check: str, also: str = "") -> float:
-    expected, ok = _CHECKS[check]
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or not ok(value):
-        hint = ""
-        if isinstance(value, str):
-            try:
-                float(value)
-                hint = " (YAML reads 1e-3 as text: write 1.0e-3)"
-            except ValueError:
-                pass
-        raise GapError(f"{source}: {key}: expected {expected}{also}, got {value!r}{hint}")
-    return float(value)
+GAP_BOUNDS = {f.metadata["key"]: f.metadata["bound"] for f in _FIELDS.values()}  # docs/config_bounds.md
 
 
 def _checked(source: str, meta: Any, value: Any) -> Any:
-    key, check, shape = meta["key"], meta["check"], meta["shape"]
+    key, bound, shape = meta["key"], meta["bound"], meta["shape"]
     if shape == "per_joint" and isinstance(value, dict):
-        return {str(j): _number(source, f"{key}.{j}", v, check) for j, v in value.items()}
+        return {str(j): checked_number(source, f"{key}.{j}", v, bound, GapError) for j, v in value.items()}
     if shape == "vec3" and isinstance(value, list | tuple | np.ndarray):
         if len(value) != 3:
             raise GapError(f"{source}: {key}: expected 3 numbers (x, y, z), got {len(value)}")
-        return tuple(_number(source, f"{key}[{i}]", v, check) for i, v in enumerate(value))
+        return tuple(checked_number(source, f"{key}[{i}]", v, bound, GapError) for i, v in enumerate(value))
     also = {"per_joint": " or a mapping joint name -> number", "vec3": " or a list of 3 numbers"}.get(shape, "")
-    return _number(source, key, value, check, also)
+    return checked_number(source, key, value, bound, GapError, also)
 
 
 # -- loading -------------------------------------------------------------------------------------------------
@@ -188,11 +179,7 @@ def parse_gap(data: Any, source: str, joints: Sequence[str] | None = None) -> Re
 def load_gap(name_or_path: str | Path, joints: Sequence[str] | None = None) -> RealityGap:
     """The profile `name_or_path`: a shipped name (configs/gaps/<name>.yaml) or a YAML file."""
     path = gap_path(name_or_path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise GapError(f"{path}: not valid YAML: {exc}") from exc
-    return parse_gap(data, str(path), joints)
+    return parse_gap(read_yaml(path, GapError, "reality-gap profile"), str(path), joints)
 
 
 def latency_ticks(seconds: float, dt: float) -> int:

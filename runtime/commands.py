@@ -9,26 +9,32 @@ scenario file (`CommandSchedule.from_yaml(path)`):
     ramp_s: 0.5                   # optional (default 0.5): linear ramp from the command before (0 at the start)
 
 A ramp starts at its segment's start and is cut short by a segment shorter than it. Every command must lie in
-`COMMAND_LIMITS`, the range the walking controllers support. The schedule is precomputed as a piecewise-linear
-curve, so `at(t)` (called at the policy rate in the control loop) is a bisect and one interpolation.
+`COMMAND_LIMITS`, the range the walking controllers support; every number of a scenario in `SCENARIO_BOUNDS`.
+The schedule is precomputed as a piecewise-linear curve, so `at(t)` (called at the policy rate in the control
+loop) is a bisect and one interpolation.
 """
 
 from __future__ import annotations
 
 import math
 from bisect import bisect_right
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-from bruce_hw.config import ConfigError
+from bruce_hw.config import Bound, ConfigError, checked_number, read_yaml
 
 COMMAND_AXES = ("vx", "vy", "wz")
 COMMAND_UNITS = ("m/s", "m/s", "rad/s")
 COMMAND_LIMITS = {"vx": (-0.5, 1.0), "vy": (-0.3, 0.3), "wz": (-0.5, 0.5)}  # the walking controllers' range
 DEFAULT_RAMP_S = 0.5
+SCENARIO_BOUNDS = {  # docs/config_bounds.md
+    "ramp_s": Bound(0.0, 10.0, "s", "ramp between commands; 0: steps"),
+    "segments[*].duration": Bound(0.0, 3600.0, "s", "an hour outlasts a battery", low_open=True),
+    **{f"segments[*].cmd.{axis}": Bound(*COMMAND_LIMITS[axis], unit, "the walking controllers' range")
+       for axis, unit in zip(COMMAND_AXES, COMMAND_UNITS, strict=True)},
+}
 _SCENARIO_KEYS = {"segments", "ramp_s"}
 _SEGMENT_KEYS = {"duration", "cmd"}
 
@@ -84,17 +90,11 @@ class CommandSchedule:
     def from_yaml(cls, path: str | Path) -> CommandSchedule:
         """A scenario file; ConfigError naming the file, the segment and the problem when it is not usable."""
         path = Path(path)
-        try:
-            tree = yaml.safe_load(path.read_text())
-        except OSError as exc:
-            raise ConfigError(f"{path}: cannot read the scenario: {exc.strerror or exc}") from None
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+        tree = read_yaml(path, ConfigError, "scenario")
         if not isinstance(tree, dict):
             raise ConfigError(f"{path}: <top>: expected a mapping with {sorted(_SCENARIO_KEYS)}, got {tree!r}")
         _check_keys(path, "", tree, _SCENARIO_KEYS, required={"segments"})
-        ramp_s = _number(path, "ramp_s", tree.get("ramp_s", DEFAULT_RAMP_S), "a ramp time >= 0 s",
-                         lambda v: v >= 0)
+        ramp_s = checked_number(path, "ramp_s", tree.get("ramp_s", DEFAULT_RAMP_S), SCENARIO_BOUNDS["ramp_s"])
         raw_segments = tree["segments"]
         if not isinstance(raw_segments, list) or not raw_segments:
             raise ConfigError(f"{path}: segments: expected a non-empty list of {{duration, cmd}}, "
@@ -117,16 +117,17 @@ def _segment(path: Path, index: int, raw) -> tuple[float, tuple[float, float, fl
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: {where}: expected a mapping {{duration, cmd}}, got {raw!r}")
     _check_keys(path, where + ".", raw, _SEGMENT_KEYS, required=_SEGMENT_KEYS)
-    duration = _number(path, f"{where}.duration", raw["duration"], "a duration > 0 s", lambda v: v > 0)
+    duration = checked_number(path, f"{where}.duration", raw["duration"], SCENARIO_BOUNDS["segments[*].duration"])
     cmd = raw["cmd"]
     if not isinstance(cmd, list) or len(cmd) != len(COMMAND_AXES):
         raise ConfigError(f"{path}: {where}.cmd: expected [vx, vy, wz] (3 numbers), got {cmd!r}")
-    values = tuple(_number(path, f"{where}.cmd.{axis}", v, "a number")
-                   for axis, v in zip(COMMAND_AXES, cmd, strict=True))
-    problem = limit_violation(values)
+    for axis, v in zip(COMMAND_AXES, cmd, strict=True):
+        if isinstance(v, bool) or not isinstance(v, int | float):  # raises, naming the axis
+            checked_number(path, f"{where}.cmd.{axis}", v, SCENARIO_BOUNDS[f"segments[*].cmd.{axis}"])
+    problem = limit_violation(cmd)  # the same ranges, in the words `CommandSchedule.constant` uses; NaN fails too
     if problem is not None:
         raise ConfigError(f"{path}: {where}.cmd: {problem}")
-    return duration, values
+    return duration, tuple(float(v) for v in cmd)
 
 
 def _check_keys(path: Path, prefix: str, tree: dict, allowed: set[str], required: set[str]) -> None:
@@ -137,10 +138,3 @@ def _check_keys(path: Path, prefix: str, tree: dict, allowed: set[str], required
     if missing:
         raise ConfigError(f"{path}: {prefix}{missing[0]}: missing key")
 
-
-def _number(path: Path, key: str, value, expected: str, accept: Callable[[float], bool] | None = None) -> float:
-    """A finite int or float (YAML booleans are not numbers here) that `accept`, if given, approves."""
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) \
-            or (accept is not None and not accept(value)):
-        raise ConfigError(f"{path}: {key}: expected {expected}, got {value!r}")
-    return float(value)

@@ -154,7 +154,7 @@ def test_pinn_lookahead_is_optional_and_checked(config, raw_config, write_config
     raw_config["pinn"]["lookahead_ticks"] = 2
     assert load_config(write_config(raw_config)).models.pinn_lookahead_ticks == 2
     raw_config["pinn"]["lookahead_ticks"] = -1
-    _expect_error(write_config, raw_config, "pinn.lookahead_ticks", "an integer >= 0")
+    _expect_error(write_config, raw_config, "pinn.lookahead_ticks", "an integer in [0, 50] ticks", "got -1")
 
 
 def test_gait_period_is_a_number_or_a_cadence_table(config, raw_config, write_config):
@@ -164,4 +164,6 @@ def test_gait_period_is_a_number_or_a_cadence_table(config, raw_config, write_co
     raw_config["policy"]["gait_period_s"] = [[0.0, 0.36], [-0.5, 0.44]]
     _expect_error(write_config, raw_config, "policy.gait_period_s", "increasing vx")
     raw_config["policy"]["gait_period_s"] = [[0.0, 0.0]]
-    _expect_error(write_config, raw_config, "policy.gait_period_s", "period > 0", "[0.0, 0.0]")
+    _expect_error(write_config, raw_config, "policy.gait_period_s[0][1]", "a number in (0.1, 2] s", "got 0.0")
+    raw_config["policy"]["gait_period_s"] = [0.0, 0.36]
+    _expect_error(write_config, raw_config, "policy.gait_period_s[0]", "a [vx (m/s), period (s)] pair", "got 0.0")

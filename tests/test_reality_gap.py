@@ -266,22 +266,32 @@ def test_default_profile_has_the_documented_values(config):
 
 # -- errors ------------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize(("text", "message"), [
-    ("actuator:\n  latency_s: -1\n", "actuator.latency_s: expected a number >= 0, got -1"),
-    ("actuator:\n  latency_s: true\n", "actuator.latency_s: expected a number >= 0, got True"),
+    ("actuator:\n  latency_s: -1\n", "actuator.latency_s: expected a number in [0, 0.05] s (50 ticks at 1 kHz"),
+    ("actuator:\n  latency_s: true\n", "actuator.latency_s: expected a number in [0, 0.05] s"),
+    ("actuator:\n  latency_s: 0.2\n", "), got 0.2"),
+    ("actuator:\n  time_constant_s: 1.0\n", "actuator.time_constant_s: expected a number in [0, 0.05] s"),
     ("actuator:\n  latncy_s: 0.001\n", "actuator.latncy_s: unknown key (expected one of ['latency_s',"),
     ("actuators:\n  latency_s: 0.001\n", "actuators: unknown key (expected seed or one of ['actuator',"),
-    ("actuator:\n  torque_limit_scale: 1.2\n", "actuator.torque_limit_scale: expected a number in (0, 1], got 1.2"),
-    ("inertia:\n  mass_scale: 0\n", "inertia.mass_scale: expected a number > 0, got 0"),
-    ("inertia:\n  armature_scale: {r_knee: -2}\n", "inertia.armature_scale.r_knee: expected a number > 0, got -2"),
-    ("friction:\n  coulomb: {r_knee: -0.1}\n", "friction.coulomb.r_knee: expected a number >= 0, got -0.1"),
+    ("actuator:\n  torque_limit_scale: 1.2\n", "actuator.torque_limit_scale: expected a number in [0.5, 1] ("),
+    ("inertia:\n  mass_scale: 0\n", "inertia.mass_scale: expected a number in [0.5, 2] ("),
+    ("inertia:\n  inertia_scale: 5\n", "inertia.inertia_scale: expected a number in [0.5, 2] ("),
+    ("inertia:\n  armature_scale: {r_knee: -2}\n", "inertia.armature_scale.r_knee: expected a number in [0.5, 2]"),
+    ("inertia:\n  armature_add: 1.0\n", "inertia.armature_add: expected a number in [0, 0.01] kg·m²"),
+    ("friction:\n  coulomb: {r_knee: -0.1}\n", "friction.coulomb.r_knee: expected a number in [0, 1] N·m ("),
+    ("friction:\n  viscous: .inf\n", "friction.viscous: expected a number in [0, 0.5] N·m·s/rad"),
     ("friction:\n  coulomb: {r_kne: 0.1}\n", "friction.coulomb.r_kne: unknown joint (expected one of"),
     ("friction: 0.1\n", "friction: expected a mapping, got 0.1"),
-    ("encoder:\n  q_noise: abc\n", "encoder.q_noise: expected a number >= 0 or a mapping joint name -> number, "
-                                   "got 'abc'"),
+    ("encoder:\n  q_noise: abc\n", "encoder.q_noise: expected a number in [0, 0.05] rad (3 deg std) or a mapping "
+                                   "joint name -> number, got 'abc'"),
+    ("encoder:\n  q_bias: {r_knee: 0.5}\n", "encoder.q_bias.r_knee: expected a number in [-0.1, 0.1] rad"),
     ("encoder:\n  q_noise: 1e-3\n", "(YAML reads 1e-3 as text: write 1.0e-3)"),
     ("imu:\n  gyro_bias: [0.1, 0.2]\n", "imu.gyro_bias: expected 3 numbers (x, y, z), got 2"),
-    ("imu:\n  gyro_noise: -0.01\n", "imu.gyro_noise: expected a number >= 0, got -0.01"),
-    ("sensor:\n  latency_s: .nan\n", "sensor.latency_s: expected a number >= 0, got nan"),
+    ("imu:\n  gyro_bias: [0.1, .nan, 0.0]\n", "imu.gyro_bias[1]: expected a number in [-0.5, 0.5] rad/s"),
+    ("imu:\n  gyro_noise: -0.01\n", "imu.gyro_noise: expected a number in [0, 0.5] rad/s (std per axis), got -0.01"),
+    ("imu:\n  accel_bias: 9.81\n", "imu.accel_bias: expected a number in [-2, 2] m/s²"),
+    ("imu:\n  orientation_noise: 1\n", "imu.orientation_noise: expected a number in [0, 0.1] rad"),
+    ("sensor:\n  latency_s: .nan\n", "sensor.latency_s: expected a number in [0, 0.05] s"),
+    ("sensor:\n  latency_s: 1.0e+9\n", "sensor.latency_s: expected a number in [0, 0.05] s"),
     ("seed: -1\n", "seed: expected an integer >= 0, got -1"),
     ("- 1\n", "<top>: expected a mapping of seed and sections"),
 ])
@@ -301,7 +311,8 @@ def test_unknown_profile_and_missing_file_are_named(tmp_path):
 
 
 def test_gap_built_in_code_is_checked_too(config):
-    with pytest.raises(GapError, match=r"^RealityGap: actuator.latency_s: expected a number >= 0, got -0.001"):
+    with pytest.raises(GapError, match=r"^RealityGap: actuator.latency_s: expected a number in \[0, 0.05\] s .*, "
+                                       r"got -0.001"):
         RealityGap(actuator_latency_s=-0.001)
     with pytest.raises(GapError, match=r"friction.viscous.knee: unknown joint"):
         configured(config, RealityGap(viscous={"knee": 0.1}))
@@ -330,4 +341,5 @@ def test_bruce_run_bad_gap_is_named(tmp_path, capsys):
     bad = tmp_path / "bad.yaml"
     bad.write_text("actuator:\n  latency_s: -1\n")
     assert main(["--gap", str(bad), "--duration", "0.1", "--rerun", "off"]) == 2
-    assert f"bruce-run: {bad}: actuator.latency_s: expected a number >= 0, got -1" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"bruce-run: {bad}: actuator.latency_s: expected a number in [0, 0.05] s" in err and "got -1" in err
