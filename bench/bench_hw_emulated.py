@@ -50,7 +50,7 @@ def stand(emulator: EmulatorProcess, seconds: float) -> None:
             sys.exit(f"bruce-run failed ({run.returncode}):\n{run.stdout}\n{run.stderr}")
         stats = json.loads(stats_path.read_text())
     output = run.stdout + run.stderr
-    link = re.search(r"(\d+) bulk cycles in ([\d.]+) s \((\d+) Hz\), (\d+) timeouts, (\d+) retries", output)
+    link = re.search(r"(\d+) bulk cycles in ([\d.]+) s \((\d+) Hz\), (\d+) replies lost, (\d+) retries", output)
     grant = re.search(r"bruce-run: (realtime: .*)", output)
     status = emulator.status()
     plant, bear = status["plant"], status["bear"]
@@ -61,7 +61,7 @@ def stand(emulator: EmulatorProcess, seconds: float) -> None:
     rate = float(link.group(3)) if link else float("nan")
     print(f"   bulk cycles: {link.group(1) if link else '?'} in {link.group(2) if link else '?'} s = {rate:.0f} Hz "
           f"(goal {RATE_GOAL_HZ:.0f} Hz sustained: {'met' if rate >= 0.98 * RATE_GOAL_HZ else 'MISSED'}); "
-          f"bus timeouts {link.group(4) if link else '?'}, retries {link.group(5) if link else '?'}")
+          f"replies lost {link.group(4) if link else '?'}, retries {link.group(5) if link else '?'}")
     print(f"   late ticks: {stats['late_ticks']} of {stats['ticks']} = {100 * late:.3f} % (goal <= "
           f"{100 * LATE_SHARE_GOAL:.0f} %: {'met' if late <= LATE_SHARE_GOAL else 'MISSED'}); skipped "
           f"{stats.get('skipped_ticks', '?')}; worst overruns µs {[round(v) for v in stats['worst_overruns_us'][:5]]}")
@@ -74,8 +74,8 @@ def stand(emulator: EmulatorProcess, seconds: float) -> None:
 
 
 def faults(emulator: EmulatorProcess, trials: int) -> None:
-    print(f"2. fault -> damping, {trials} trial(s) each (hw backend defaults: BEAR reply timeout 2 ms, 2 tries; "
-          "safety.max_sensor_age_s)")
+    print(f"2. fault -> damping, {trials} trial(s) each (hw backend defaults: BEAR reply timeout 2 ms, no retry in "
+          "a tick; safety.max_sensor_age_s)")
     for name, inject, undo in FAULTS:
         latencies, causes = [], set()
         for _ in range(trials):

@@ -30,7 +30,8 @@ class Histogram:
             self.max_ns = ns
 
     def percentile(self, p: float) -> float | None:
-        """Upper edge (µs) of the bin holding the p-th percentile; the exact max for the overflow bin."""
+        """Upper edge (µs) of the bin holding the p-th percentile, or the exact max if that is lower (always for
+        the overflow bin)."""
         if self.n == 0:
             return None
         rank = p / 100.0 * self.n
@@ -38,7 +39,7 @@ class Histogram:
         for us, count in enumerate(self.counts):
             seen += count
             if seen >= rank and count:
-                return float(us + 1) if us < HISTOGRAM_BINS_US else self.max_ns / 1000.0
+                return min(float(us + 1), self.max_ns / 1000.0)  # never above the exact max
         return self.max_ns / 1000.0
 
 
@@ -46,6 +47,7 @@ class LoopStats:
     def __init__(self, sections: tuple[str, ...] = SECTIONS):
         self.work = Histogram()
         self.period = Histogram()
+        self.data_age = Histogram()  # age of the oldest joint or IMU sample when the tick read it
         self.sections = {name: Histogram() for name in sections}
         self.ticks = 0
         self.late_ticks = 0
@@ -69,6 +71,8 @@ class LoopStats:
                         "max": self.work.max_ns / 1000.0 if self.work.n else None},
             "period_us": {"p50": self.period.percentile(50), "p99": self.period.percentile(99),
                           "max": self.period.max_ns / 1000.0 if self.period.n else None},
+            "data_age_us": {"p50": self.data_age.percentile(50), "p99": self.data_age.percentile(99),
+                            "max": self.data_age.max_ns / 1000.0 if self.data_age.n else None},
             "sections_us": {name: {"p50": h.percentile(50), "p99": h.percentile(99)}
                             for name, h in self.sections.items() if h.n},
             "worst_overruns_us": [ns / 1000.0 for ns in sorted(self._worst, reverse=True)],
@@ -85,7 +89,9 @@ class LoopStats:
         work, period = j["work_us"], j["period_us"]
         lines = [f"  loop: work p50 {us(work['p50'])} / p99 {us(work['p99'])} / max {us(work['max'])} µs, period "
                  f"p50 {us(period['p50'])} / p99 {us(period['p99'])} / max {us(period['max'])} µs, late "
-                 f"{self.late_ticks} ({100 * j['late_share']:.3f} %), skipped {self.skipped_ticks}"]
+                 f"{self.late_ticks} ({100 * j['late_share']:.3f} %), skipped {self.skipped_ticks}",
+                 f"  data age p50 {us(j['data_age_us']['p50'])} / p99 {us(j['data_age_us']['p99'])} / max "
+                 f"{us(j['data_age_us']['max'])} µs"]
         parts = [f"{name} {v['p50']:.0f}/{v['p99']:.0f}" for name, v in j["sections_us"].items()]
         lines.append("  sections p50/p99 µs: " + ", ".join(parts))
         return "\n".join(lines)

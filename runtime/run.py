@@ -516,6 +516,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
             robot = backend.read()
             t1 = perf()
             now = backend.clock()  # read once: the age check and the telemetry timeline share it
+            stats.data_age.add(max(0, int(1e9 * (now - min(robot.joints.stamp, robot.imu.stamp)))))
             safety.check(robot, now, late)
             if safety.tripped:
                 break

@@ -20,6 +20,7 @@ from bruce_hw.attitude import MahonyAttitude
 from bruce_hw.config import load_config
 from bruce_hw.hw import HwBackend, actuator_position_limits, make_hw_backend, missing_for_hw
 from drivers.emulators.cli import EmulatorProcess, FaultAt, reply_time
+from runtime.exit import ExitCode
 from runtime.run import run_session
 
 BEAR_IDS = " ".join(str(i) for i in range(1, 11))
@@ -84,6 +85,7 @@ def test_estop_bit_reaches_damping(emulator, hw_config):
     assert "E-stop" in backend.fault_cause and hw_config.buses.bear.port in backend.fault_cause
     assert 0.0 < backend.fault_stamp - pressed_at < LOOSE_DAMPING_S
     assert summary.ticks < 1000  # stopped at the E-stop, not at the end of the duration
+    assert summary.exit_code == ExitCode.SAFETY_TRIP and summary.fault_class == "safety"  # as on the mock
 
 
 def test_stopped_imu_stream_reaches_damping(emulator, hw_config):
