@@ -256,7 +256,9 @@ class BearLegs:
             raise StartupError(problems)
         from drivers.bear import RATED_CURRENT_A
 
-        if not self.i_max <= RATED_CURRENT_A:
+        if self.i_max <= RATED_CURRENT_A * (1 + 1e-9):  # 10.5 / 0.35 is 30 A give or take a rounding
+            self.i_max = min(self.i_max, RATED_CURRENT_A)
+        else:
             raise StartupError([f"{self.name}: actuators.torque_limit / actuators.torque_per_amp = {self.i_max:.1f} A "
                                 f"is beyond the Koala BEAR's rated {RATED_CURRENT_A:g} A: nothing written"])
         low, high = actuator_position_limits(self.config)
@@ -360,7 +362,8 @@ class BearLegs:
         if torque is None:
             reply = self.bus.bulk_cycle(self.ids, None, partial=not retry)
         else:
-            reply = self.bus.bulk_cycle(self.ids, self._torque_mode, goal_iq=torque / self.kt, partial=True)
+            goal_iq = np.minimum(np.maximum(torque / self.kt, -self.i_max), self.i_max)
+            reply = self.bus.bulk_cycle(self.ids, self._torque_mode, goal_iq=goal_iq, partial=True)
         stamp = time.monotonic()
         self.cycles += 1
         if self.cycles == 1:
