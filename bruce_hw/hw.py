@@ -107,6 +107,7 @@ STANDARD_GRAVITY = 9.80665    # m/s^2: the sense board reports specific force sc
 GIL_SWITCH_INTERVAL_S = 0.0005
 IMU_WAIT_S = 0.002            # how long a stale-looking IMU sample may wait for a newer one (see _newer_sense_sample)
 ASSUMED_WATCHDOG_UNIT_S = 0.001  # the config's default BEAR watchdog unit: an assumption until measured
+REQUEST_TRIES = 4             # BEAR requests outside the tick's bulk cycle (see BearLegs.open)
 
 
 def _modules_missing(modules: dict[str, str]) -> list[str]:
@@ -212,6 +213,7 @@ class BearLegs:
         self._monitor_next = 0
         safety = config.safety
         self.max_age_s = safety.max_sensor_age_s
+        self.dt = config.dt
         self.loss = ReplyLoss(len(self.ids), round(safety.reply_loss_window_s * config.loop_hz), safety.reply_loss_max)
         n = len(self.ids)
         self._position, self._velocity, self._iq = np.zeros(n), np.zeros(n), np.zeros(n)
@@ -229,7 +231,10 @@ class BearLegs:
         self._torque_mode = Mode.TORQUE
         self._fault_bits = int(FAULT_BITS & ~BearError.WATCHDOG_ESTOP)  # bit 3 (E-stop, damping): handled apart
         try:
-            self.bus = BearBus(self.port, self.config.buses.bear.baud, reply_timeout_s=self.reply_timeout_s)
+            # Requests outside the tick (start-up, enabling, the monitor) ask up to REQUEST_TRIES times: at 1 %
+            # lost replies, 2 tries would fail one start-up in a thousand. The tick's bulk cycle never retries.
+            self.bus = BearBus(self.port, self.config.buses.bear.baud, reply_timeout_s=self.reply_timeout_s,
+                               tries=REQUEST_TRIES)
         except DriverError as exc:
             raise StartupError([f"{self.name}: {exc}"]) from exc
         missing = ping_all(self.bus.ping, self.ids, self.ping_rounds, self.ping_retry_s)
@@ -386,7 +391,9 @@ class BearLegs:
 
     def _problem(self, now: float) -> str | None:
         ages = now - self._stamps
-        stale = np.flatnonzero(ages > self.max_age_s)
+        # Judged one tick ahead: a sample that will be too old when the safety stage looks at it is silence here,
+        # where the bus and the IDs are known (the safety stage's own age check could only say "stale joint data").
+        stale = np.flatnonzero(ages + self.dt > self.max_age_s)
         if stale.size:
             return (f"no reply from ID(s) {_ids(self.ids[k] for k in stale)} for {1e3 * float(ages[stale].max()):.1f} "
                     f"ms > safety.max_sensor_age_s {1e3 * self.max_age_s:.1f} ms")

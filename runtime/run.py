@@ -50,9 +50,11 @@ AT_REST_TICKS = 100          # ... for this many ticks in a row
 TRUTH_PHASE = 5              # the mock's truth log runs on this tick of each policy period, not with the policy
 TRACKING_SKIP_S = 2.0        # velocity tracking is scored after this start-up transient (soft start, first steps)
 CONTROLLERS = ("policy", "teacher", "standing")
-# A joint target further than this outside joints.position_limits is no target a working controller gives: the
-# model is broken (refused before the motors are enabled, a safety trip after).
-TARGET_MARGIN_RAD = 0.5
+# Controllers fold torque into their targets (a = q + tau / Kp: the standing controller's ankles, the teacher's
+# feed-forward), so a target may leave the joint range. One further than this many times torque_limit / Kp beyond
+# the range asks for more torque than the joint has wherever the joint is: the model is broken (refused before the
+# motors are enabled, a safety trip after).
+TARGET_TORQUE_MULTIPLE = 2.0
 # One PINN tick moves q by qd dt (~0.01 rad): a prediction a whole joint range outside the limits, or faster than
 # this many times the velocity limit, is a broken model.
 PINN_RANGE_MULTIPLE = 1.0
@@ -296,10 +298,16 @@ def build_pinn(config: RobotConfig, transfer: str, pinn_path: Path | None) -> On
     return pinn
 
 
+def target_bounds(config: RobotConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Per joint, the targets a working controller can give (see TARGET_TORQUE_MULTIPLE)."""
+    reach = TARGET_TORQUE_MULTIPLE * config.tau_limit / np.maximum(config.eq8.kp, 1e-9)
+    return config.q_lower - reach, config.q_upper + reach
+
+
 def check_models(config: RobotConfig, controller, name: str, pinn: OnnxPinn | None, robot: RobotState,
                  estimator: Estimator) -> None:
     """Before the motors are enabled: the controller on the measured state (zero command) and one PINN step from it
-    must give finite values within physical ranges (targets within joints.position_limits + TARGET_MARGIN_RAD;
+    must give finite values within physical ranges (targets within `target_bounds`;
     PINN q within PINN_RANGE_MULTIPLE joint ranges of the limits, qd within PINN_VELOCITY_MULTIPLE velocity
     limits). Raises ModelError naming the model, the joint and the value. Leaves the models reset."""
     q, qd = robot.joints.q, robot.joints.qd
@@ -307,8 +315,8 @@ def check_models(config: RobotConfig, controller, name: str, pinn: OnnxPinn | No
     estimator.reset(robot)
     estimator.update(robot)
     a = np.asarray(_refusing(controller, robot, estimator.estimate(), np.zeros(3)), dtype=np.float64)
-    _check_range(config, f"{name}: warm-up on the measured pose: target", a, config.q_lower - TARGET_MARGIN_RAD,
-                 config.q_upper + TARGET_MARGIN_RAD, f"joints.position_limits +- {TARGET_MARGIN_RAD} rad")
+    _check_range(config, f"{name}: warm-up on the measured pose: target", a, *target_bounds(config),
+                 f"joints.position_limits widened by {TARGET_TORQUE_MULTIPLE:g} x torque_limit / Kp")
     if pinn is not None:
         pinn.reset()
         q_hat, qd_hat = _refusing(pinn.step, q, qd, eq8_torque(a, q, qd, config.eq8))
@@ -504,7 +512,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     recorder_stop = None
     standstill = np.zeros(3)
     command = standstill
-    a_low, a_high = config.q_lower - TARGET_MARGIN_RAD, config.q_upper + TARGET_MARGIN_RAD
+    a_low, a_high = target_bounds(config)
     try:
         while stop.cause is None and (n_ticks is None or tick < n_ticks):
             if realtime:
@@ -532,7 +540,8 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
                 if not np.all((a >= a_low) & (a <= a_high)):
                     i = int(np.argmax(~((a >= a_low) & (a <= a_high))))
                     safety.trip(f"controller target {a[i]:.4g} rad for {config.joints[i]} outside "
-                                f"joints.position_limits +- {TARGET_MARGIN_RAD} rad")
+                                f"[{a_low[i]:.3g}, {a_high[i]:.3g}] (asks more than {TARGET_TORQUE_MULTIPLE:g} x "
+                                "its torque limit)")
                     break
             t2 = perf()
             tau_star = eq8_torque(a, q, qd, eq8)

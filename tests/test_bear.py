@@ -387,8 +387,8 @@ def test_watchdog_expiry_is_detected_within_a_poll_period():
     milliseconds of the deadline, though no packet arrives."""
     emu = BearBusEmulator([1])
     emu.handle(frame(1, 0x05, b"\x1a" + u32(30)))
+    last_packet = time.monotonic()  # before the packet: the BEAR stamps it on arrival, inside handle()
     emu.handle(frame(1, 0x03, b"\x00" + u32(1)))
-    last_packet = time.monotonic()
     emu.unplug()
     stop = threading.Event()
 

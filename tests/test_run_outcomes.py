@@ -89,9 +89,9 @@ def test_each_fault_class_has_its_exit_code_and_writes_stats(case, config, const
 
 @pytest.mark.parametrize("values", [[np.nan] * 10, [1e6] * 10, "outside"])
 def test_a_model_with_bad_outputs_never_reaches_an_enabled_motor(values, config, constant_policy_onnx):
-    if values == "outside":  # finite, but beyond the limits by more than the margin
+    if values == "outside":  # finite, but asking for more torque than the knee has from anywhere in its range
         values = config.standing_pose.copy()
-        values[3] = config.q_lower[3] - 1.0
+        values[3] = config.q_lower[3] - 3.0 * config.tau_limit[3] / config.eq8.kp[3]
     policy = constant_policy_onnx(values, f"bad_{abs(hash(str(values)))}")
     ActivationSpy.activations = 0
     with pytest.raises(ModelError, match="refused before the motors were enabled") as info:

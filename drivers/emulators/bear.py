@@ -57,7 +57,7 @@ import struct
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -288,6 +288,11 @@ class BearBusEmulator:
             raise ValueError(f"BEAR IDs are 0..{MAX_DEVICE_ID}")
         self._rx = bytearray()
         self._rx_time = 0.0
+        # Called (with the emulator's lock held) once a BULK_COMM's replies are sent: a lockstep physics adapter
+        # steps here with the goals it wrote (Plant(lockstep)). The replies carry the present values when the
+        # packet came, as on the real bus; the physics moves while the host computes its next tick.
+        self.on_bulk: Callable[[], None] | None = None
+        self._bulk_seen = False
         self._corruptions: list[tuple[str, int | None]] = []
         self._pty: PtyDevice | None = None
         self._events = EventLog()
@@ -489,9 +494,20 @@ class BearBusEmulator:
 
     # -- the wire --
     def _on_bytes(self, data: bytes) -> None:
-        reply = self.handle(data)
-        if reply and self._pty is not None:
-            self._pty.send(reply)
+        with self._lock:
+            reply = self.handle(data)
+            if reply and self._pty is not None:
+                self._pty.send(reply)
+            if self._bulk_seen and self.on_bulk is not None:
+                self._bulk_seen = False
+                self.on_bulk()
+
+    def check_watchdogs(self) -> None:
+        """Run every BEAR's watchdog now (a device clock: a lockstep plant calls it every millisecond)."""
+        with self._lock:
+            now = time.monotonic()
+            for bear in self._bears.values():
+                self._check_watchdog(bear, now)
 
     def handle(self, data: bytes) -> bytes:
         """Bytes from the host in, the devices' answer out (b"" when nobody answers)."""
@@ -593,7 +609,8 @@ class BearBusEmulator:
             self.stats.reject("bulk_length")
             return b""
         reads, writes = params[2:2 + n_read], params[2 + n_read:head]
-        out = bytearray()
+        listed = []
+        self._bulk_seen = True
         for k in range(n_motors):
             entry = params[head + k * stride:head + (k + 1) * stride]
             bear = self._bears.get(entry[0])
@@ -604,7 +621,10 @@ class BearBusEmulator:
                 bear.write_status(address, entry[1 + 4 * j:5 + 4 * j])
             if writes:
                 self._track(bear, now, "host write")
-            if n_read:
+            listed.append(bear)
+        out = bytearray()
+        if n_read:
+            for bear in listed:
                 out += self._reply(bear, bear.read(STATUS_BY_ADDRESS, reads))
         return bytes(out)
 

@@ -87,6 +87,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--realtime", action="store_true",
                    help=f"run the emulators at SCHED_FIFO {EMULATOR_PRIORITY} (below bruce-run's loop), as devices "
                         "with their own clocks would; on a loaded machine this keeps their replies in time")
+    p.add_argument("--lockstep", action="store_true",
+                   help="step the physics once per BEAR bulk cycle of the host instead of on the wall clock (the "
+                        "IMU streams one packet per step; the motors' watchdogs keep the wall clock): runs and "
+                        "tests come out the same however loaded the machine is; BEAR legs only")
     p.add_argument("--bear-drop", type=_probability, default=0.0, metavar="P",
                    help="drop each BEAR reply with probability P (default %(default)s)")
     p.add_argument("--bear-corrupt", type=_probability, default=0.0, metavar="P",
@@ -124,7 +128,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.realtime:
         restore, text = _realtime()  # for this thread while it starts the emulators': they inherit it
         print(f"{PROG}: {text}")
-    robot = EmulatedRobot(config, sense_command_poll_s=args.sense_poll_s, can_interface=args.can_interface)
+    if args.lockstep and config.buses.can.motors:
+        print(f"{PROG}: --lockstep steps the physics on BEAR bulk cycles; this config has CAN legs", file=sys.stderr)
+        return 2
+    robot = EmulatedRobot(config, sense_command_poll_s=args.sense_poll_s, can_interface=args.can_interface,
+                          lockstep=args.lockstep)
     try:
         robot.start()
     except Exception as exc:

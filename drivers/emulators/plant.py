@@ -60,7 +60,7 @@ class Plant:
     thread; without it, `step()` advances one loop period (for tests that want no thread)."""
 
     def __init__(self, config: RobotConfig, *, bear=None, dynamixel=None, sense=None, can: dict | None = None,
-                 arm_time_constant_s: float = 0.05):
+                 arm_time_constant_s: float = 0.05, lockstep: bool = False):
         self.config = config
         self.bear, self.dynamixel, self.sense = bear, dynamixel, sense
         self.can = dict(can or {})
@@ -82,16 +82,35 @@ class Plant:
         self.steps = 0                # physics steps run
         self.late_steps = 0           # steps started more than one period late
         self.skipped_steps = 0        # steps dropped after stalls
-        self._lock = threading.RLock()
+        self.lockstep = lockstep
+        # Lockstep: the BEAR emulator's lock is the plant's, since its bulk hook steps the plant with that lock held
+        # and every other path (place, ground truth) takes the plant's first: one lock, no order to get wrong.
+        self._lock = bear._lock if lockstep and bear is not None else threading.RLock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._hold()
 
     # -- lifecycle ---------------------------------------------------------------------------------------------
     def start(self) -> Plant:
-        self._thread = threading.Thread(target=self._run, name="plant", daemon=True)
+        if self.lockstep:
+            if self.bear is None:
+                raise ValueError("lockstep needs a BEAR bus: its bulk cycles are the plant's clock")
+            self.bear.on_bulk = self.step
+            target = self._device_clocks
+        else:
+            target = self._run
+        self._thread = threading.Thread(target=target, name="plant", daemon=True)
         self._thread.start()
         return self
+
+    def _device_clocks(self) -> None:
+        """Lockstep: the physics waits for the host, the devices' own timers do not. Every millisecond the BEARs'
+        and the Dynamixels' watchdogs are checked (a silent host still ends in damping / stopped servos)."""
+        while not self._stop.wait(self.dt):
+            self.bear.check_watchdogs()
+            check = getattr(self.dynamixel, "check_watchdogs", None)
+            if check is not None:
+                check()
 
     def close(self) -> None:
         self._stop.set()
@@ -162,6 +181,8 @@ class Plant:
                                                contacts=state.contacts.contact)
             if self.dynamixel is not None and self.steps % ARM_EVERY_STEPS == 0:
                 self._step_arms(ARM_EVERY_STEPS * self.dt)
+            if self.lockstep and self.sense is not None:
+                self.sense.tick()  # the IMU sample of this step, right behind the BEAR replies
             self.steps += 1
 
     def _actuator_torques(self) -> tuple[np.ndarray, bool, bool]:
@@ -246,6 +267,7 @@ class EmulatedRobot:
     config: RobotConfig
     sense_command_poll_s: float = 0.05
     can_interface: str = "virtual"
+    lockstep: bool = False  # the physics steps once per host BULK_COMM (Plant(lockstep)), not on the wall clock
     bear: object = None
     dynamixel: object = None
     sense: object = None
@@ -271,9 +293,9 @@ class EmulatedRobot:
             self.dynamixel = DynamixelBusEmulator(cfg.buses.dynamixel.ids, track_goals=False).start()
             # The real firmware reads commands once a second while streaming; a shorter poll keeps repeated
             # start-ups and shutdowns from waiting that second each.
-            self.sense = SenseBoardEmulator(command_poll_s=self.sense_command_poll_s).start()
+            self.sense = SenseBoardEmulator(command_poll_s=self.sense_command_poll_s, lockstep=self.lockstep).start()
             self.plant = Plant(cfg, bear=self.bear, dynamixel=self.dynamixel, sense=self.sense,
-                               can=self.can).start()
+                               can=self.can, lockstep=self.lockstep).start()
         except BaseException:
             self.close()
             raise

@@ -34,6 +34,7 @@ Faults for tests: `set_silent()` (no packets, commands still obeyed), `corrupt_n
 from __future__ import annotations
 
 import fcntl
+import math
 import os
 import struct
 import termios
@@ -61,6 +62,9 @@ ACCEL_SCALE = np.float32(0.1220703125) * (np.float32(GRAVITY) / np.float32(1000)
 CORRUPTIONS = ("checksum", "trailer", "length", "header", "flags", "truncate")
 PUMP_MIN, PUMP_MAX = 30, 80
 _MAX_CATCH_UP = 10        # periods sent at once after a stall
+# Lockstep: with no step for this long (a host that is starting up, or gone) the board streams on its own clock again,
+# as the real one always does, so that the host's start-up check sees packets.
+LOCKSTEP_IDLE_S = 0.01
 _MAX_UNREAD = 2048        # bytes waiting in the host's input before packets are dropped
 _MAX_RX = 65536           # host bytes kept between command reads
 
@@ -68,8 +72,12 @@ _MAX_RX = 65536           # host bytes kept between command reads
 class SenseBoardEmulator:
     def __init__(self, *, rate_hz: float = 1000.0, command_poll_s: float = 1.0, idle_poll_s: float = 0.01,
                  quantize: bool = True, calibration_samples: int = 10000, calibration_wait_s: float = 15.0,
-                 mode: PicoMode | int = PicoMode.IDLE, name: str = "sense", seed: int = 0):
+                 mode: PicoMode | int = PicoMode.IDLE, name: str = "sense", seed: int = 0, lockstep: bool = False):
+        """`lockstep`: while streaming, a packet goes out on each `tick()` (a lockstep physics step) instead of
+        every 1/rate_hz s of the wall clock."""
         self.rate_hz = rate_hz
+        self.lockstep = lockstep
+        self._last_tick = -math.inf
         self.command_poll_s = command_poll_s
         self.idle_poll_s = idle_poll_s
         self.quantize = quantize
@@ -276,13 +284,21 @@ class SenseBoardEmulator:
                 next_poll = now + self.command_poll_s
                 if self._mode != PicoMode.NOMINAL:
                     return
-            if now >= next_send:
+            if self.lockstep and now - self._last_tick < LOCKSTEP_IDLE_S:
+                next_send = min(next_poll, now + period)  # packets go out on tick() while the steps come
+            elif now >= next_send:
                 if now - next_send > _MAX_CATCH_UP * period:
                     next_send = now  # a long stall: do not back-fill
                 while next_send <= now:
                     self._send_sample()
                     next_send += period
             time.sleep(max(0.0, min(next_send, next_poll) - time.monotonic()))
+
+    def tick(self) -> None:
+        """Lockstep: one packet now, if the board is streaming (NOMINAL)."""
+        self._last_tick = time.monotonic()
+        if self._mode == PicoMode.NOMINAL:
+            self._send_sample()
 
     def _raw(self) -> tuple[np.ndarray, np.ndarray]:
         """What the IMU chip reports now, in float32 SI units (before the board's bias)."""
