@@ -8,7 +8,14 @@ and at 1 % corrupted a stand completes, the losses counted in the stats; at 5 % 
 message that names the loss rate. Printed per case: how the run ended, replies lost, late share, the data age
 p50/p99 (oldest joint or IMU sample when the tick read it) and the bulk cycle (read section) p50/p99.
 
-    python bench/bench_reply_loss.py [--seconds 30]
+Two modes:
+- `lockstep` (default): `bruce-emulate --lockstep` (the physics steps once per bulk cycle) and the session in this
+  process, unpaced, with the robot config as shipped: what the loss does, whatever the machine's load.
+- `realtime`: `bruce-emulate --realtime` and `bruce-run --backend hw` paced at 1 kHz in a process of its own: the
+  late share and data age a robot would see (on a loaded or slow machine the wall-clock trips of the loop itself,
+  `safety.overrun_streak` and the data age, can end a run whatever the loss).
+
+    python bench/bench_reply_loss.py [--seconds 30] [--mode lockstep|realtime]
 """
 
 from __future__ import annotations
@@ -26,11 +33,34 @@ CASES = (("no loss", 0.0, 0.0), ("1 % dropped", 0.01, 0.0), ("1 % corrupted", 0.
          ("5 % dropped", 0.05, 0.0), ("5 % corrupted", 0.0, 0.05))
 
 
-def stand(emulator: EmulatorProcess, seconds: float) -> tuple[dict, int]:
+def stand_lockstep(emulator: EmulatorProcess, seconds: float, overrides: list[str]) -> tuple[dict, int]:
+    import contextlib
+    import io
+
+    from bruce_hw.backend import BackendError
+    from bruce_hw.config import load_config
+    from bruce_hw.hw import make_hw_backend
+    from runtime.run import exit_code_of, run_session
+
+    config = load_config(overrides=emulator.overrides + overrides)
+    with tempfile.TemporaryDirectory() as tmp:
+        stats_path = Path(tmp) / "stats.json"
+        code = 0
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            try:
+                code = run_session(make_hw_backend(config, check_imu=False), config, duration=seconds,
+                                   realtime=False, controller_kind="standing", stats_path=stats_path).exit_code
+            except BackendError as exc:
+                code = exit_code_of(exc)
+        return json.loads(stats_path.read_text()), int(code)
+
+
+def stand(emulator: EmulatorProcess, seconds: float, overrides: list[str]) -> tuple[dict, int]:
     with tempfile.TemporaryDirectory() as tmp:
         stats_path = Path(tmp) / "stats.json"
         argv = [sys.executable, "-m", "runtime.cli", *emulator.command_line[1:], "--controller", "standing",
-                "--duration", str(seconds), "--rerun", "off", "--stats", str(stats_path)]
+                "--duration", str(seconds), "--rerun", "off", "--stats", str(stats_path),
+                *(w for item in overrides for w in ("--set", item))]
         run = subprocess.run(argv, capture_output=True, text=True, timeout=seconds + 120)
         if not stats_path.exists():
             sys.exit(f"bruce-run wrote no stats ({run.returncode}):\n{run.stdout}\n{run.stderr}")
@@ -41,14 +71,22 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--seed", type=int, default=0, help="seed of the emulator's loss draws")
+    parser.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="robot config override for the runs, e.g. safety.max_sensor_age_s=0.02 (printed)")
     args = parser.parse_args()
-    print(f"stand {args.seconds:g} s per case, bruce-emulate --realtime, standing controller")
+    if args.overrides:
+        print("config overrides: " + " ".join(args.overrides))
+    print(f"stand {args.seconds:g} s per case, standing controller, mode {args.mode}: " + (
+        "bruce-emulate --lockstep, session unpaced in this process" if args.mode == "lockstep"
+        else "bruce-emulate --realtime, bruce-run --backend hw paced in its own process"))
     print(f"{'case':15s} {'exit':>4s} {'ticks':>6s} {'lost':>6s} {'lost %':>7s} {'late %':>7s} "
           f"{'age p50/p99 µs':>15s} {'read p50/p99 µs':>16s}  end")
     for name, drop, corrupt in CASES:
-        with EmulatorProcess("--realtime", "--bear-drop", str(drop), "--bear-corrupt", str(corrupt),
-                             "--loss-seed", str(args.seed)) as emulator:
-            stats, code = stand(emulator, args.seconds)
+        with EmulatorProcess("--realtime", *(["--lockstep"] if args.mode == "lockstep" else []), "--bear-drop",
+                             str(drop), "--bear-corrupt", str(corrupt), "--loss-seed", str(args.seed)) as emulator:
+            stats, code = (stand_lockstep if args.mode == "lockstep" else stand)(emulator, args.seconds,
+                                                                                args.overrides)
         legs = (stats.get("link") or {}).get("legs", {})
         age, read = stats["data_age_us"], stats["sections_us"].get("read", {"p50": None, "p99": None})
         completed = stats["stop_cause"] == "duration reached"

@@ -353,7 +353,9 @@ class StatusParser:
     `stats`) bad lengths, bad checksums, instruction packets and unexpected IDs, and keeps an incomplete packet until
     more bytes come. Never raises on any input; holds at most one frame's worth of bytes.
 
-    After a bad checksum it drops one byte only, not the claimed frame: a real packet may start inside it.
+    After a bad checksum it drops one byte only, not the claimed frame: a real packet may start inside it. A frame
+    whose checksum matches but which holds a header (FF FF) is taken for a cut reply completed by the next one and
+    dropped up to that header.
     """
 
     def __init__(self, stats: LinkStats | None = None):
@@ -405,6 +407,14 @@ class StatusParser:
             if checksum(buf[2:total - 1]) != buf[total - 1]:
                 self.stats.reject("checksum")
                 del buf[:1]
+                continue
+            inner = buf.find(HEADER, 2, total)
+            if inner != -1:
+                # A header inside the frame: most likely a reply cut short and completed by the next one's bytes,
+                # whose 8-bit checksum matched by chance (1 in 256), which would hand the loop a made-up sample.
+                # Resynchronise there; a genuine reply lost this way (data bytes FF FF, ~1e-4) is one lost reply.
+                self.stats.reject("truncated")
+                del buf[:inner]
                 continue
             packet = StatusPacket(device_id, error, bytes(buf[5:total - 1]))
             del buf[:total]

@@ -1,0 +1,78 @@
+"""The BEAR driver's tick under lost and corrupted replies: the partial bulk cycle (no retry, the missing rows
+marked), and the parser refusing a cut reply that the next reply's bytes complete with a matching checksum."""
+
+import struct
+import time
+
+import numpy as np
+import pytest
+
+from drivers.bear import (
+    ERROR_OK,
+    RATED_CURRENT_A,
+    BearBus,
+    StatusParser,
+    config_register,
+    encode_status,
+    reply_length,
+    status_register,
+)
+from drivers.emulators.bear import BearBusEmulator
+
+IDS = list(range(1, 11))
+
+
+@pytest.fixture
+def emulator():
+    with BearBusEmulator(IDS) as emu:
+        yield emu
+
+
+def test_a_partial_bulk_cycle_marks_the_silent_motors_and_never_retries(emulator):
+    emulator.silence([4, 7])
+    with BearBus(emulator.path, reply_timeout_s=0.002) as bus:
+        started = time.monotonic()
+        reply = bus.bulk_cycle(IDS, "torque", goal_iq=np.zeros(10), partial=True)
+        elapsed = time.monotonic() - started
+        assert bus.stats.retries == 0 and reply.lost_ids == (4, 7)
+        assert np.isnan(reply.position[[3, 6]]).all() and np.isfinite(np.delete(reply.position, [3, 6])).all()
+        assert elapsed < bus.cycle_budget_s(10) / bus.tries + 0.05  # one try's budget (and the host's scheduling)
+        emulator.silence([4, 7], False)
+        emulator.silence([10])  # the last one: nothing after it to say it is lost, so the deadline does
+        assert bus.bulk_cycle(IDS, None, partial=True).lost_ids == (10,)
+        emulator.silence([10], False)
+        whole = bus.bulk_cycle(IDS, None, partial=True)
+        assert whole.answered is None and whole.lost_ids == ()
+
+
+def test_no_current_register_is_written_beyond_the_bear_rating():
+    for name in ("goal_iq", "goal_id"):
+        assert status_register(name).check(RATED_CURRENT_A) == RATED_CURRENT_A
+        with pytest.raises(ValueError, match=f"{name} 31 A is beyond the Koala BEAR's rated 30 A"):
+            status_register(name).encode(31.0)
+    with pytest.raises(ValueError, match="limit_i_max"):
+        config_register("limit_i_max").encode(-45.0)
+
+
+def _reply(device_id: int, *values: float) -> bytes:
+    return encode_status(device_id, ERROR_OK, struct.pack("<3f", *values))
+
+
+def test_a_cut_reply_completed_by_the_next_one_is_not_a_sample():
+    """Reply A (ID 4) loses its tail on the wire; the bytes of reply B (ID 5) complete its length. Among B's
+    possible positions, find one where the made-up frame's 8-bit checksum matches, as happens 1 time in 256."""
+    cut = _reply(4, 0.5, 0.0, 1.0)[:9]
+    for k in range(100000):
+        b = _reply(5, 0.1 + 1e-6 * k, 0.0, 2.0)
+        frame = cut + b[: 4 + reply_length(3) - len(cut)]
+        body = frame[2:-1]
+        if (~sum(body) & 0xFF) == frame[-1]:
+            break
+    else:
+        pytest.fail("no colliding frame found")
+    parser = StatusParser()
+    parser.expect(reply_length(3), [4, 5])
+    packets = parser.feed(cut + b)
+    assert [p.id for p in packets] == [5]  # reply B, and nothing made up for ID 4
+    assert struct.unpack("<3f", packets[0].data)[0] == pytest.approx(0.1 + 1e-6 * k)
+    assert parser.stats.rejected["truncated"] >= 1
