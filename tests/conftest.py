@@ -139,3 +139,43 @@ def offset_pinn_onnx(tmp_path_factory):
                            {"q_next": joint, "qd_next": joint, "h_next": state, "c_next": state}, nodes, constants)
 
     return make
+
+
+# -- the hw backend against `bruce-emulate --lockstep` (tests/test_hw_backend.py, tests/test_hw_safety.py) ---------
+# These tests check what happens (which fault, which device, damping, watchdogs), not the 1 kHz timing (benchmarked
+# in bench/): beside the host on two shared cores, an IMU packet is sometimes late by tens of milliseconds, so the
+# slow-tick and data-age trips get the widest room the config allows. Lost replies are tested at the config's bounds.
+WALL_CLOCK_SLACK = ["safety.overrun_streak=1000", "safety.max_sensor_age_s=0.05"]
+BEAR_IDS = tuple(range(1, 11))
+DXL_IDS = tuple(range(11, 17))
+
+
+@pytest.fixture
+def no_memory_lock(monkeypatch):
+    """Paced in-process sessions without mlockall: in a pytest process that has loaded torch (the distillation
+    tests) locking every mapping stalls the loop for seconds. bruce-run, in a process of its own, locks memory."""
+    from runtime import realtime, run
+
+    monkeypatch.setattr(run, "request_realtime", lambda: realtime.request_realtime(lock_memory=False))
+
+
+@pytest.fixture(scope="module")
+def emulator():
+    """`bruce-emulate --lockstep` in a child process: the physics steps once per host bulk cycle."""
+    from drivers.emulators.cli import EmulatorProcess
+
+    emu = EmulatorProcess("--realtime", "--lockstep")
+    yield emu
+    emu.close()
+
+
+@pytest.fixture
+def hw_config(emulator):
+    """The robot config pointed at the emulators (with WALL_CLOCK_SLACK); every bus plugged, every device
+    answering, no reply loss, no E-stop, the IMU streaming, the robot back on its feet (the previous test may have
+    ended in damping, where the emulated robot sinks)."""
+    for command in ("plug bear", f"answer bear {' '.join(map(str, BEAR_IDS))}",
+                    f"answer dynamixel {' '.join(map(str, DXL_IDS))}", "loss bear 0 0", "estop off", "imu start",
+                    "place"):
+        emulator.send(command)
+    return load_config(overrides=emulator.overrides + WALL_CLOCK_SLACK)

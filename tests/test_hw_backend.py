@@ -15,53 +15,21 @@ import time
 
 import numpy as np
 import pytest
+from conftest import WALL_CLOCK_SLACK
 
 from bruce_hw import BackendError, JointCommand, LifecycleState
 from bruce_hw.attitude import MahonyAttitude
 from bruce_hw.config import load_config
 from bruce_hw.hw import HwBackend, actuator_position_limits, make_hw_backend, missing_for_hw
-from drivers.emulators.cli import EmulatorProcess, FaultAt, reply_time
+from drivers.emulators.cli import FaultAt, reply_time
 from runtime.exit import ExitCode
 from runtime.run import run_session
 
-BEAR_IDS = " ".join(str(i) for i in range(1, 11))
-DXL_IDS = " ".join(str(i) for i in range(11, 17))
+pytestmark = pytest.mark.usefixtures("no_memory_lock")
 LOOSE_DAMPING_S = 0.05  # the goal is 10 ms; a loaded CI machine gets slack
 # The emulators run in lockstep (the physics steps once per host bulk cycle), so the loop runs unpaced: what it
 # sees does not depend on how loaded the machine is. Wall-clock runs are benchmarks (bench/bench_hw_emulated.py).
 REALTIME = False
-
-
-@pytest.fixture(autouse=True)
-def no_memory_lock(monkeypatch):
-    """Paced in-process sessions without mlockall: in a pytest process that has loaded torch (the distillation
-    tests) locking every mapping stalls the loop for seconds. bruce-run, in a process of its own, locks memory."""
-    from runtime import realtime, run
-
-    monkeypatch.setattr(run, "request_realtime", lambda: realtime.request_realtime(lock_memory=False))
-
-
-# These tests check what happens (which fault, which device, damping, watchdogs), not the 1 kHz timing (benchmarked
-# in bench/): the emulators run on the wall clock beside the host on two shared cores, where a tick or an IMU packet
-# is sometimes late by milliseconds, so the slow-tick and data-age trips get room that the robot config does not
-# give. A lost reply (the real bus's hazard) is still tested at the config's bounds.
-WALL_CLOCK_SLACK = ["safety.overrun_streak=1000", "safety.max_sensor_age_s=0.02"]
-
-
-@pytest.fixture(scope="module")
-def emulator():
-    emu = EmulatorProcess("--realtime", "--lockstep")
-    yield emu
-    emu.close()
-
-
-@pytest.fixture
-def hw_config(emulator):
-    """The robot config pointed at the emulators; every device answering, no E-stop, the IMU streaming, the robot
-    back on its feet (the previous test ended in damping, where the emulated robot sinks)."""
-    for command in (f"answer bear {BEAR_IDS}", f"answer dynamixel {DXL_IDS}", "estop off", "imu start", "place"):
-        emulator.send(command)
-    return load_config(overrides=emulator.overrides + WALL_CLOCK_SLACK)
 
 
 def test_bruce_emulate_prints_the_command_line(emulator):

@@ -16,47 +16,16 @@ import sys
 import time
 
 import pytest
+from conftest import BEAR_IDS, DXL_IDS, WALL_CLOCK_SLACK
 
 from bruce_hw import BackendError
-from bruce_hw.config import load_config
 from bruce_hw.hw import HwBackend, make_hw_backend
-from drivers.emulators.cli import EmulatorProcess, FaultAt, reply_time
+from drivers.emulators.cli import FaultAt, reply_time
 from runtime.exit import ExitCode, StopFlag
 from runtime.run import run_session
 
-BEAR_IDS = tuple(range(1, 11))
-DXL_IDS = tuple(range(11, 17))
+pytestmark = pytest.mark.usefixtures("no_memory_lock")
 DETECTION_SLACK_S = 0.03  # the emulator's plant notices a watchdog on its next 1 ms step; a loaded machine is late
-
-
-@pytest.fixture(autouse=True)
-def no_memory_lock(monkeypatch):
-    from runtime import realtime, run
-
-    monkeypatch.setattr(run, "request_realtime", lambda: realtime.request_realtime(lock_memory=False))
-
-
-# These tests check what happens (which fault, which device, damping, watchdogs), not the 1 kHz timing (benchmarked
-# in bench/): the emulators run on the wall clock beside the host on two shared cores, where a tick or an IMU packet
-# is sometimes late by milliseconds, so the slow-tick and data-age trips get room that the robot config does not
-# give. A lost reply (the real bus's hazard) is still tested at the config's bounds.
-WALL_CLOCK_SLACK = ["safety.overrun_streak=1000", "safety.max_sensor_age_s=0.02"]
-
-
-@pytest.fixture(scope="module")
-def emulator():
-    emu = EmulatorProcess("--realtime", "--lockstep")
-    yield emu
-    emu.close()
-
-
-@pytest.fixture
-def hw_config(emulator):
-    for command in ("plug bear", f"answer bear {' '.join(map(str, BEAR_IDS))}",
-                    f"answer dynamixel {' '.join(map(str, DXL_IDS))}", "loss bear 0 0", "estop off", "imu start",
-                    "place"):
-        emulator.send(command)
-    return load_config(overrides=emulator.overrides + WALL_CLOCK_SLACK)
 
 
 def events_since(emulator, t0: float) -> list[tuple[float, str]]:
@@ -130,11 +99,8 @@ def test_an_unplugged_leg_bus_ends_with_every_bear_damping_by_its_own_watchdog(e
 
 
 def test_a_killed_bruce_run_leaves_every_bear_damping_and_every_dynamixel_stopped(emulator, hw_config, tmp_path):
-    # bruce-run on hw is paced to the wall clock: the widest data-age bound the config allows keeps a loaded
-    # machine's late IMU packet from ending the run before the kill this test is about.
-    slack = ["safety.overrun_streak=1000", "safety.max_sensor_age_s=0.05"]
     argv = [sys.executable, "-m", "runtime.cli", *emulator.command_line[1:], "--controller", "standing",
-            "--duration", "30", "--rerun", "off", *(w for item in slack for w in ("--set", item))]
+            "--duration", "30", "--rerun", "off", *(w for item in WALL_CLOCK_SLACK for w in ("--set", item))]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         line = ""

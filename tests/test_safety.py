@@ -122,7 +122,7 @@ def test_stale_sensor_data_trips(config, which):
     age = config.safety.max_sensor_age_s
     old = robot(config, stamp=1.0, imu_stamp=1.0 + age) if which == "joint" else \
         robot(config, stamp=1.0 + age, imu_stamp=1.0)
-    stage.check(old, now=1.0 + age)  # exactly at the limit: fine
+    stage.check(old, now=1.0 + 0.999 * age)  # just inside the limit: fine (1.0 + age - 1.0 may round above it)
     assert not stage.tripped
     stage.check(old, now=1.0 + 1.5 * age)
     assert stage.tripped and f"stale {which} data" in stage.cause
