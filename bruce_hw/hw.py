@@ -108,6 +108,7 @@ GIL_SWITCH_INTERVAL_S = 0.0005
 IMU_WAIT_S = 0.002            # how long a stale-looking IMU sample may wait for a newer one (see _newer_sense_sample)
 ASSUMED_WATCHDOG_UNIT_S = 0.001  # the config's default BEAR watchdog unit: an assumption until measured
 REQUEST_TRIES = 4             # BEAR requests outside the tick's bulk cycle (see BearLegs.open)
+SILENT_TICKS = 3              # a motor over the loss bound whose sample is older than this many ticks is silent
 
 
 def _modules_missing(modules: dict[str, str]) -> list[str]:
@@ -400,9 +401,13 @@ class BearLegs:
         over = self.loss.over()
         if over.size:
             share = self.loss.share()
-            return ("reply loss " + ", ".join(f"ID {self.ids[k]} {100 * share[k]:.1f} %" for k in over)
-                    + f" over the last {self.loss.window} cycles > safety.reply_loss_max "
-                      f"{100 * self.loss.max_share:g} %")
+            text = (f"reply loss {', '.join(f'ID {self.ids[k]} {100 * share[k]:.1f} %' for k in over)} over the last "
+                    f"{self.loss.window} cycles > safety.reply_loss_max {100 * self.loss.max_share:g} %")
+            silent = [k for k in over if ages[k] > SILENT_TICKS * self.dt]
+            if silent:  # a motor gone silent reaches the loss bound before the age bound when that one is wide
+                return (f"no reply from ID(s) {_ids(self.ids[k] for k in silent)} for "
+                        f"{1e3 * float(ages[silent].max()):.1f} ms: {text}")
+            return text
         return None
 
     def link_report(self) -> dict:

@@ -123,6 +123,7 @@ def test_bruce_emulate_prints_events_with_the_emulators_stamps():
             assert stamp - before > 0.020
             assert stamp - after < 0.020 + 0.030, text  # ~1 ms late on a quiet machine; slack for a loaded one
             bus.set_torque_enable([1], 0)
+            emulator.wait_event("bear 1 torque_enable 3 -> 0 (host write)")  # heard before the wire is cut below
         unplugged_at = reply_time(emulator.send("unplug bear"))
         stamp, _ = emulator.wait_event("bear unplug")
         assert abs(stamp - unplugged_at) < 0.01

@@ -93,7 +93,8 @@ def test_an_unplugged_leg_bus_ends_with_every_bear_damping_by_its_own_watchdog(e
     print(f"unplugged BEAR bus: host in damping after {1e3 * (backend.fault_stamp - unplugged):.1f} ms; BEAR "
           f"watchdogs {min(1e3 * (t - unplugged) for t, _ in expiries.values()):.1f}.."
           f"{max(1e3 * (t - unplugged) for t, _ in expiries.values()):.1f} ms after the unplug")
-    assert backend.fault_stamp - unplugged < 0.05  # the host noticed too (the 10 ms goal is benchmarked)
+    # the host noticed too, by the data age (the 10 ms goal at the shipped age bound is benchmarked)
+    assert backend.fault_stamp - unplugged < hw_config.safety.max_sensor_age_s + DETECTION_SLACK_S
     emulator.send("plug bear")
     assert emulator.status()["bear"]["torque_enable"] == [3] * 10
 
