@@ -313,7 +313,8 @@ def status(robot) -> dict:
                      "arm_q": robot.plant.arm_q.tolist()},
            "dynamixel": {"ids": list(cfg.buses.dynamixel.ids),
                          "torque_enabled": [bool(x) for x in robot.dynamixel.torque_enabled_all()]},
-           "sense": {"mode": robot.sense.mode.name.lower(), "packets_sent": robot.sense.packets_sent}}
+           "sense": {"mode": robot.sense.mode.name.lower(), "packets_sent": robot.sense.packets_sent,
+                     "packets_dropped": robot.sense.packets_dropped}}
     if robot.bear is not None:
         c = robot.bear.commands(list(cfg.buses.bear.ids))
         out["bear"] = {"ids": list(cfg.buses.bear.ids), "mode": c["mode"].tolist(),
