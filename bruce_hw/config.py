@@ -29,6 +29,9 @@ from drivers.bear import RATED_CURRENT_A
 from drivers.can_motor import MitRanges  # the MIT frame ranges: one type for the config and the driver
 
 DEFAULT_CONFIG = "configs/robots/bruce.yaml"
+# The BEAR's watchdog_timeout unit is undocumented: this is assumed until `bruce-hw-check --probe-watchdog` measures
+# it and `buses.bear.watchdog_unit_s` says so.
+ASSUMED_BEAR_WATCHDOG_UNIT_S = 0.001
 _MODELS_DIR = Path(__file__).resolve().parent / "models"
 
 
@@ -486,7 +489,7 @@ def _serial(r: _Reader, key: str, n_ids: int | None = None, watchdog_unit_s: flo
     if watchdog_unit_s is None:
         watchdog_s = r.number(f"{key}.watchdog_s", bound=bound_for(f"{key}.watchdog_s").narrowed(
             "at least 2 ticks of rates.loop_hz, or one late tick trips it", low=min_watchdog_s))
-        watchdog_unit_s = 0.001
+        watchdog_unit_s = ASSUMED_BEAR_WATCHDOG_UNIT_S
         if "watchdog_unit_s" in node:
             watchdog_unit_s = r.number(f"{key}.watchdog_unit_s", bound=bound_for(f"{key}.watchdog_unit_s").narrowed(
                 f"at most {key}.watchdog_s: one register count", high=watchdog_s))

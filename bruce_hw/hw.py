@@ -68,7 +68,7 @@ import numpy as np
 
 from bruce_hw.attitude import MahonyAttitude
 from bruce_hw.backend import Backend, BackendError, LifecycleState
-from bruce_hw.config import RobotConfig
+from bruce_hw.config import ASSUMED_BEAR_WATCHDOG_UNIT_S, RobotConfig
 from bruce_hw.types import JointCommand, JointState, RobotState
 
 log = logging.getLogger("bruce_hw.hw")
@@ -106,7 +106,6 @@ STANDARD_GRAVITY = 9.80665    # m/s^2: the sense board reports specific force sc
 # safety.max_sensor_age_s; CPython's default switch interval (5 ms) lets a busy thread hold them off that long.
 GIL_SWITCH_INTERVAL_S = 0.0005
 IMU_WAIT_S = 0.002            # how long a stale-looking IMU sample may wait for a newer one (see _newer_sense_sample)
-ASSUMED_WATCHDOG_UNIT_S = 0.001  # the config's default BEAR watchdog unit: an assumption until measured
 REQUEST_TRIES = 4             # BEAR requests outside the tick's bulk cycle (see BearLegs.open)
 SILENT_TICKS = 3              # a motor over the loss bound whose sample is older than this many ticks is silent
 
@@ -283,7 +282,7 @@ class BearLegs:
             log.info("%s: BEAR watchdog_timeout %d (%.0f ms at %g s per count%s), read back from every BEAR",
                      self.name, self.watchdog_count, 1e3 * self.watchdog_count * cfg.watchdog_unit_s,
                      cfg.watchdog_unit_s, "; the unit is assumed until `bruce-hw-check --probe-watchdog` measures it"
-                     if cfg.watchdog_unit_s == ASSUMED_WATCHDOG_UNIT_S else "")
+                     if cfg.watchdog_unit_s == ASSUMED_BEAR_WATCHDOG_UNIT_S else "")
         for _ in self.ids:
             self.monitor()
         self._seed()
@@ -427,7 +426,7 @@ class BearLegs:
         self._monitor_next = (k + 1) % len(self.ids)
         device_id = self.ids[k]
         try:
-            reply = self.bus.read_status(device_id, MONITOR_REGISTERS)
+            reply = self.bus.read_status(device_id, MONITOR_REGISTERS, tries=1)
         except BusTimeout:  # one lost reply is not worth a retry in the tick: the next round asks again
             return
         hottest = max(reply[name] for name in MONITOR_REGISTERS[:3])

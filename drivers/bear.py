@@ -562,8 +562,10 @@ class BearBus:
                 pass
         return found
 
-    def read_status(self, device_id: int, names: str | int | Sequence[str | int]) -> RegisterReply:
-        return self._read(device_id, [status_register(n) for n in _names(names)])
+    def read_status(self, device_id: int, names: str | int | Sequence[str | int], tries: int | None = None
+                    ) -> RegisterReply:
+        """`tries`: this request's tries (default: the bus's); 1 inside a control tick, which cannot wait twice."""
+        return self._read(device_id, [status_register(n) for n in _names(names)], tries)
 
     def read_config(self, device_id: int, names: str | int | Sequence[str | int]) -> RegisterReply:
         return self._read(device_id, [config_register(n) for n in _names(names)])
@@ -696,25 +698,28 @@ class BearBus:
         except self._io_errors as exc:
             raise DriverError(f"{self.port}: write failed: {exc}") from exc
 
-    def _read(self, device_id: int, registers: list[Register]) -> RegisterReply:
+    def _read(self, device_id: int, registers: list[Register], tries: int | None = None) -> RegisterReply:
         if not registers:
             raise ValueError("name at least one register to read")
         name = "READ_CFG" if registers[0].table == "config" else "READ_STAT"
-        packet = self._request(encode_read(device_id, registers), device_id, reply_length(len(registers)), name)
+        packet = self._request(encode_read(device_id, registers), device_id, reply_length(len(registers)), name,
+                               tries)
         values = decode_values(registers, packet.data)
         return RegisterReply(device_id, packet.error, {r.name: v for r, v in zip(registers, values, strict=True)})
 
-    def _request(self, request: bytes, device_id: int, length: int | None, what: str) -> StatusPacket:
+    def _request(self, request: bytes, device_id: int, length: int | None, what: str,
+                 tries: int | None = None) -> StatusPacket:
         if device_id == BROADCAST_ID:
             raise ValueError(f"{what} to the broadcast ID gets no reply")
-        for attempt in range(self.tries):
+        tries = self.tries if tries is None else tries
+        for attempt in range(tries):
             if attempt:
                 self.stats.retries += 1
             got = self._exchange(request, [device_id], length)
             if device_id in got:
                 return got[device_id]
         self.stats.timeouts += 1
-        raise BusTimeout(self.port, [device_id], f"{what}, {self.tries} tries")
+        raise BusTimeout(self.port, [device_id], f"{what}, {tries} tries")
 
     def _exchange(self, request: bytes, ids: Sequence[int], length: int | None) -> dict[int, StatusPacket]:
         """Send one request and collect one reply per ID until all are in or the deadline passes."""

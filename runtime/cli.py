@@ -15,7 +15,7 @@ import os
 import sys
 from pathlib import Path
 
-from runtime.exit import ExitCode, StopFlag, StopRequested
+from runtime.exit import NOTHING_ENABLED, ExitCode, StopFlag, StopRequested
 
 # Everything else is imported inside the functions: `main` takes SIGINT/SIGTERM over first, so that a signal while
 # numpy, MuJoCo or onnxruntime load ends the run with one line and exit code 0, never a traceback.
@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _main(argv, stop)
     except StopRequested as exc:
-        print(f"bruce-run: {exc} during start-up: stopped before any motor was enabled", file=sys.stderr)
+        print(f"bruce-run: {exc} {NOTHING_ENABLED}", file=sys.stderr)
         return ExitCode.OK
     finally:
         stop.restore()
@@ -173,7 +173,7 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
         # a missing device file is an input too: the port setting
         return refused(ExitCode.BAD_INPUT, str(exc), f"{type(exc).__name__}: {exc}")
     except StopRequested as exc:
-        return refused(ExitCode.OK, f"{exc} during start-up: stopped before any motor was enabled", None)
+        return refused(ExitCode.OK, f"{exc} {NOTHING_ENABLED}", None)
     realtime = args.realtime or args.backend == "hw"  # a robot is always paced
     duration = args.duration
     if duration is None and args.scenario is not None:

@@ -9,6 +9,7 @@ import enum
 import signal
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+NOTHING_ENABLED = "before activation: no motor was enabled"  # how a stop during start-up is reported, everywhere
 
 
 class ExitCode(enum.IntEnum):

@@ -33,7 +33,7 @@ from bruce_hw.config import RobotConfig
 from bruce_hw.types import GroundTruth, JointCommand, RobotState
 from runtime.commands import COMMAND_AXES
 from runtime.estimation import Estimator, euler_of, make_estimator, tilt_angle, tilt_of
-from runtime.exit import FAULT_CLASSES, ExitCode, StopFlag, StopRequested
+from runtime.exit import FAULT_CLASSES, NOTHING_ENABLED, ExitCode, StopFlag, StopRequested
 from runtime.inference import ModelError, OnnxPinn, OnnxPolicy
 from runtime.loopstats import LoopStats
 from runtime.mixing import TRANSFERS, eq8_torque, eq9_torque
@@ -339,13 +339,18 @@ def _refusing(call, *args):
         raise ModelError(f"{exc} on the measured pose; refused before the motors were enabled") from None
 
 
+def first_outside(values: np.ndarray, low: np.ndarray, high: np.ndarray) -> int | None:
+    """Index of the first value outside [low, high] (NaN included), or None."""
+    inside = (values >= low) & (values <= high)  # NaN fails both
+    return None if inside.all() else int(np.argmin(inside))
+
+
 def _check_range(config: RobotConfig, what: str, values: np.ndarray, low: np.ndarray, high: np.ndarray,
                  bound: str) -> None:
     if values.shape != (config.n_joints,):
         raise ModelError(f"{what}: expected {config.n_joints} values, got shape {values.shape}")
-    bad = ~((values >= low) & (values <= high))  # NaN fails both
-    if bad.any():
-        i = int(np.argmax(bad))
+    i = first_outside(values, low, high)
+    if i is not None:
         raise ModelError(f"{what} {values[i]:.4g} for {config.joints[i]} outside [{low[i]:.3g}, {high[i]:.3g}] "
                          f"({bound}); refused before the motors were enabled")
 
@@ -357,18 +362,16 @@ def write_stats(summary: RunSummary, path: Path | None) -> None:
 
 
 def exit_code_of(exc: BaseException) -> ExitCode:
-    """The exit code of a run that ended with `exc`."""
-    from bruce_hw.config import ConfigError
-    from bruce_hw.reality_gap import GapError
+    """The exit code of a run that ended with `exc`. Refused inputs are ValueErrors (ConfigError, GapError, a bad
+    option), ModelErrors or TelemetryErrors (a sink that cannot be opened)."""
+    from runtime.telemetry import TelemetryError  # rerun itself loads only when telemetry starts
 
     if isinstance(exc, StopRequested | KeyboardInterrupt):
         return ExitCode.OK
-    if isinstance(exc, ConfigError | GapError | ModelError | ValueError) and not isinstance(exc, BackendError):
+    if isinstance(exc, ValueError | ModelError | TelemetryError):
         return ExitCode.BAD_INPUT
     if isinstance(exc, BackendError):
         return ExitCode.BUS_FAULT
-    if type(exc).__name__ == "TelemetryError":  # runtime.telemetry loads rerun: not imported here for a name
-        return ExitCode.BAD_INPUT
     return ExitCode.INTERNAL
 
 
@@ -450,7 +453,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
             summary.final_state = f"{backend.state.value}: damping"
     except StopRequested as exc:
         stop.abort = False  # a second signal must not cut the shutdown below short
-        summary.end(ExitCode.OK, f"{exc} before activation: no motor was enabled")
+        summary.end(ExitCode.OK, f"{exc} {NOTHING_ENABLED}")
         _settle(backend, summary)
     except BaseException as exc:
         stop.abort = False
@@ -537,8 +540,8 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
                 except ModelError as exc:
                     safety.trip(str(exc))
                     break
-                if not np.all((a >= a_low) & (a <= a_high)):
-                    i = int(np.argmax(~((a >= a_low) & (a <= a_high))))
+                i = first_outside(a, a_low, a_high)
+                if i is not None:
                     safety.trip(f"controller target {a[i]:.4g} rad for {config.joints[i]} outside "
                                 f"[{a_low[i]:.3g}, {a_high[i]:.3g}] (asks more than {TARGET_TORQUE_MULTIPLE:g} x "
                                 "its torque limit)")

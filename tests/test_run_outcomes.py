@@ -132,17 +132,29 @@ def test_sigterm_during_start_up_enables_nothing_and_ends_cleanly(config, tmp_pa
     assert signal.getsignal(signal.SIGTERM) is not stop  # the handlers are given back
 
 
-def test_sigterm_while_bruce_run_starts_enables_nothing(tmp_path):
-    """A real process, signalled while it imports and starts (the mock needs ~0.5 s to activate here)."""
+def test_sigterm_while_bruce_run_starts_on_silent_buses_ends_cleanly(tmp_path):
+    """A real `bruce-run --backend hw` process whose three ports are pseudo-terminals nobody answers on: start-up
+    pings them for seconds and can never activate, so a SIGTERM at any moment of it (while the modules load or
+    while the buses are scanned) must end it with one line, exit 0, and the stats."""
     stats = tmp_path / "s.json"
-    proc = subprocess.Popen([sys.executable, "-m", "runtime.cli", "--duration", "5", "--rerun", "off", "--stats",
-                             str(stats)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(0.25)
-    proc.send_signal(signal.SIGTERM)
-    out, err = proc.communicate(timeout=60)
-    if "backend active" in out:
-        pytest.skip("this machine activated the mock within 0.25 s: nothing left to interrupt")
+    terminals = [os.openpty() for _ in range(3)]
+    ports = [os.ttyname(follower) for _, follower in terminals]
+    sets = [w for key, port in zip(("bear", "dynamixel", "sense"), ports, strict=True)
+            for w in ("--set", f"buses.{key}.port={port}")]
+    proc = subprocess.Popen([sys.executable, "-m", "runtime.cli", "--backend", "hw", *sets, "--duration", "5",
+                             "--rerun", "off", "--stats", str(stats)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        time.sleep(1.5)  # any moment before activation will do: activation cannot come
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+        for leader, follower in terminals:
+            os.close(leader)
+            os.close(follower)
     assert proc.returncode == 0, err
-    assert "Traceback" not in err and "stopped before any motor was enabled" in err
-    if stats.exists():  # absent only when the signal came before the arguments were read
-        assert stats_of(stats)["exit_code"] == 0
+    assert "Traceback" not in err and "backend active" not in out
+    assert "SIGTERM received before activation: no motor was enabled" in out + err
+    data = stats_of(stats)
+    assert data["exit_code"] == 0 and data["ticks"] == 0 and "no motor was enabled" in data["stop_cause"]
