@@ -56,6 +56,8 @@ class SerialBus:
     # Seconds per count of the device's watchdog register (BEAR: undocumented, assumed until measured with
     # `bruce-hw-check --probe-watchdog`; Dynamixel: 20 ms by the control table).
     watchdog_unit_s: float = 0.0
+    # How long one request waits for its replies (BEAR bus: a bulk cycle's, on the bus thread; 0: the driver's own).
+    reply_timeout_s: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,7 +115,8 @@ class SafetyConfig:
     tilt_limit_deg: float
     tilt_ticks: int
     max_sensor_age_s: float
-    overrun_streak: int
+    min_rate_hz: float           # damping when the loop runs fewer ticks than this per second ...
+    rate_window_s: float         # ... over this window (on the backend's clock; a late tick alone is not a fault)
     reply_loss_max: float        # damping when one motor loses more than this share of its replies ...
     reply_loss_window_s: float   # ... over this window (single lost replies are not faults)
 
@@ -300,7 +303,8 @@ BOUNDS: dict[str, Bound] = {
                                    high_open=True),
     "safety.tilt_ticks": Bound(1, 1000, "ticks", "1 s at 1 kHz", integer=True),
     "safety.max_sensor_age_s": Bound(0.0, 0.05, "s", "50 ms-old data is no feedback", low_open=True),
-    "safety.overrun_streak": Bound(1, 1000, "ticks", "1 s of late ticks at 1 kHz", integer=True),
+    "safety.min_rate_hz": Bound(50.0, 1000.0, "Hz", "achieved loop rate floor; at most rates.loop_hz"),
+    "safety.rate_window_s": Bound(0.01, 1.0, "s", "window of the rate floor"),
     "safety.reply_loss_max": Bound(0.0, 0.5, "", "share of one motor's replies", low_open=True),
     "safety.reply_loss_window_s": Bound(0.05, 60.0, "s", "window of the reply-loss share"),
     "policy.gait_period_s": Bound(0.1, 2.0, "s", "a step cycle", low_open=True),
@@ -311,6 +315,7 @@ BOUNDS: dict[str, Bound] = {
     "buses.bear.ids[*]": Bound(0, 253, "", "BEAR IDs; 254 is broadcast", integer=True),
     "buses.bear.watchdog_s": Bound(0.005, 1.0, "s", "a lost host must end in damping"),
     "buses.bear.watchdog_unit_s": Bound(1e-6, 1.0, "s", "seconds per watchdog count"),
+    "buses.bear.reply_timeout_s": Bound(0.0005, 0.02, "s", "a bulk cycle's reply wait (BRUCE-OP: 2 ms)"),
     "buses.dynamixel.ids[*]": Bound(0, 252, "", "Dynamixel Protocol 2.0 IDs", integer=True),
     "buses.dynamixel.watchdog_s": Bound(0.02, 2.54, "s", "Bus Watchdog register 1..127 x 20 ms", step=0.02),
     "buses.can.bitrate": Bound(10_000, 1_000_000, "bit/s", "classic CAN", integer=True),
@@ -473,7 +478,9 @@ def _serial(r: _Reader, key: str, n_ids: int | None = None, watchdog_unit_s: flo
     required and at least `min_watchdog_s`, since a lost host must end in damping)."""
     allowed = {"port", "baud"}
     if n_ids is not None:
-        allowed |= {"ids", "watchdog_s"} | ({"watchdog_unit_s"} if watchdog_unit_s is None else set())
+        allowed |= {"ids", "watchdog_s"}
+        if watchdog_unit_s is None:  # the BEAR bus
+            allowed |= {"watchdog_unit_s", "reply_timeout_s"}
     node = r.mapping(key, allowed)
     bus = SerialBus(port=r.string(f"{key}.port"), baud=r.number(f"{key}.baud"))
     if n_ids is None:
@@ -495,7 +502,9 @@ def _serial(r: _Reader, key: str, n_ids: int | None = None, watchdog_unit_s: flo
                 f"at most {key}.watchdog_s: one register count", high=watchdog_s))
     else:
         watchdog_s = r.number(f"{key}.watchdog_s") if "watchdog_s" in node else 0.0
-    return replace(bus, ids=ids, watchdog_s=watchdog_s, watchdog_unit_s=watchdog_unit_s)
+    reply_timeout_s = r.number(f"{key}.reply_timeout_s") if "reply_timeout_s" in node else 0.0
+    return replace(bus, ids=ids, watchdog_s=watchdog_s, watchdog_unit_s=watchdog_unit_s,
+                   reply_timeout_s=reply_timeout_s)
 
 
 _CAN_KEYS = {"interface", "channel", "bitrate", "host_id", "timeout_s", "motor_type", "ranges", "motors"}
@@ -591,14 +600,20 @@ _TOP_KEYS = {"name", "mjcf", "rates", "joints", "gains", "actuators", "coupling"
 _SAFETY_FIELDS = tuple(f.name for f in fields(SafetyConfig))
 
 
-def _safety(r: _Reader, joints: tuple[str, ...], q_lower: np.ndarray, q_upper: np.ndarray) -> SafetyConfig:
+def _safety(r: _Reader, joints: tuple[str, ...], q_lower: np.ndarray, q_upper: np.ndarray,
+            loop_hz: float) -> SafetyConfig:
     r.mapping("safety", set(_SAFETY_FIELDS))
     half = 0.5 * (q_upper - q_lower)
     narrowest = int(np.argmin(half))
-    margin = BOUNDS["safety.position_margin"].narrowed(
-        f"less than half of joints.position_limits.{joints[narrowest]}", high=half[narrowest], high_open=True)
-    return SafetyConfig(**{name: r.number(f"safety.{name}", bound=margin if name == "position_margin" else None)
-                           for name in _SAFETY_FIELDS})
+    narrowed = {
+        "position_margin": BOUNDS["safety.position_margin"].narrowed(
+            f"less than half of joints.position_limits.{joints[narrowest]}", high=half[narrowest], high_open=True),
+        "min_rate_hz": BOUNDS["safety.min_rate_hz"].narrowed("at most rates.loop_hz", high=loop_hz),
+        # the floor counts whole ticks: a window must hold several
+        "rate_window_s": BOUNDS["safety.rate_window_s"].narrowed("at least 5 ticks of rates.loop_hz",
+                                                                 low=5.0 / loop_hz),
+    }
+    return SafetyConfig(**{name: r.number(f"safety.{name}", bound=narrowed.get(name)) for name in _SAFETY_FIELDS})
 
 
 def _model_file(r: _Reader, key: str) -> Path | None:
@@ -681,7 +696,10 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
         "joints.torque_limits", joints, np.zeros(len(joints)), reach,
         "what actuators.torque_limit reaches at the joint through coupling.joint_from_actuator"))
     qd_limit = r.per_joint("joints.velocity_limits", joints)
-    safety = _safety(r, joints, q_lower, q_upper)
+    safety = _safety(r, joints, q_lower, q_upper, loop_hz)
+    if buses.bear.reply_timeout_s >= safety.max_sensor_age_s:
+        raise r.fail("buses.bear.reply_timeout_s", f"less than safety.max_sensor_age_s ({safety.max_sensor_age_s:g} "
+                     "s): one cycle's wait must not make the data stale", buses.bear.reply_timeout_s)
     margin = safety.position_margin
     standing = r.per_joint("joints.standing_pose", joints, bounds=_inside(
         "joints.standing_pose", joints, q_lower + margin, q_upper - margin,

@@ -13,12 +13,15 @@ gains written with torque disabled and read back. Homing offsets are per-robot c
 flash (§1.4): read, never written. Arms: set up with torque off; sense board: stream on and the official IMU
 check. `activate` enables the legs (and checks they took it) and ramps the arms to their hold pose.
 
-One tick: the runtime calls read() then write() (runtime/run.py). read() is ONE BEAR bulk cycle: it writes the
-goal currents of the previous write() and reads present position, velocity and current, as the mock's read()
-steps the physics with what the motors were last told. write() only converts the command into goal currents.
+One tick: the runtime calls read() then write() (runtime/run.py). While active, the legs' bulk cycles run on a thread
+of their own (`bruce_hw.bus_thread`, as BRUCE-OP's bear thread): write() hands it the goal currents and starts a
+cycle, which writes them and reads present position, velocity and current; read() takes the newest complete reading
+and never waits for the bus, so a slow or jittery bus makes the data older (the data-age check judges it), not the
+tick longer. Inactive and in damping, read() runs a read-only cycle itself. The I/O threads run one real-time
+priority step above the loop on its CPU once the loop has SCHED_FIFO (`bruce_hw.io_priority`).
 BEAR mode: torque (mode 0, goal_iq): the runtime sends joint torques (JointCommand.tau_ff); a command that carries
 PD terms is evaluated here on this tick's measured state (JointCommand.torque), because a joint-space PD through
-the differential hip is not a per-motor PD, so BEAR force mode could not carry it exactly. Every 100th tick one
+the differential hip is not a per-motor PD, so BEAR force mode could not carry it exactly. Every 100th cycle one
 BEAR's temperatures and voltage are read as well (each BEAR once a second, as BRUCE's bear thread does).
 The sense board and the arms (50 Hz) run on their own threads, so the 1 kHz tick never waits for them.
 ImuSample.orientation: the board measures none, so the backend fills it from an attitude filter
@@ -26,8 +29,8 @@ ImuSample.orientation: the board measures none, so the backend fills it from an 
 the orientation when there is one and the raw accelerometer's direction otherwise, which the motors' reaction forces
 swing by tens of degrees.
 
-Lost replies: a BEAR reply lost or corrupted within a tick is not a fault. The tick's bulk cycle never retries (a
-retry cannot fit in the tick); the actuator keeps its last sample, whose stamp ages (JointState.stamp is the oldest
+Lost replies: a BEAR reply lost or corrupted within a cycle is not a fault. The bus thread's cycle never retries (the
+next cycle asks again a millisecond later); the actuator keeps its last sample, whose stamp ages (JointState.stamp is the oldest
 actuator's). Lost replies are counted per ID (`link_report`, the run's stats).
 
 Fault paths (each lands in damping, `_on_fault`: BEAR torque_enable = 3 on every reachable actuator, CAN motors a
@@ -68,6 +71,8 @@ import numpy as np
 
 from bruce_hw.attitude import MahonyAttitude
 from bruce_hw.backend import Backend, BackendError, LifecycleState
+from bruce_hw.bus_thread import BusThread
+from bruce_hw.io_priority import above_the_caller
 from bruce_hw.config import ASSUMED_BEAR_WATCHDOG_UNIT_S, RobotConfig
 from bruce_hw.types import JointCommand, JointState, RobotState
 
@@ -106,6 +111,8 @@ STANDARD_GRAVITY = 9.80665    # m/s^2: the sense board reports specific force sc
 # safety.max_sensor_age_s; CPython's default switch interval (5 ms) lets a busy thread hold them off that long.
 GIL_SWITCH_INTERVAL_S = 0.0005
 IMU_WAIT_S = 0.002            # how long a stale-looking IMU sample may wait for a newer one (see _newer_sense_sample)
+DEFAULT_REPLY_TIMEOUT_S = 0.002  # BRUCE-OP's bulk_timeout, when buses.bear.reply_timeout_s is not set
+BUS_STOP_TIMEOUT_S = 0.05   # the longest a bus cycle can take (reply timeout, monitor read) with a margin
 REQUEST_TRIES = 4             # BEAR requests outside the tick's bulk cycle (see BearLegs.open)
 SILENT_TICKS = 3              # a motor over the loss bound whose sample is older than this many ticks is silent
 
@@ -151,6 +158,7 @@ class LegReading:
     velocity: np.ndarray   # rad/s
     torque: np.ndarray     # Nm, actuator output
     stamp: float           # time.monotonic() when the oldest actuator's sample came in (a lost reply keeps its last)
+    stamps: np.ndarray     # per actuator, time.monotonic() when its kept sample came in
     estop_ids: tuple[int, ...] = ()
     faults: dict[int, tuple[str, ...]] = field(default_factory=dict)  # ID -> fault flags other than the E-stop
     problem: str | None = None  # silence or a loss rate past the config's bound: the backend faults with this text
@@ -209,6 +217,7 @@ class BearLegs:
         self.homing_offset = np.full(len(self.ids), np.nan)
         self.cycles = 0
         self.first_cycle = self.last_cycle = math.nan
+        self.low_latency = "not opened"
         self._monitor_tick = 0
         self._monitor_next = 0
         safety = config.safety
@@ -237,6 +246,8 @@ class BearLegs:
                                tries=REQUEST_TRIES)
         except DriverError as exc:
             raise StartupError([f"{self.name}: {exc}"]) from exc
+        self.low_latency = self.bus.low_latency
+        log.info("%s: %s", self.name, self.low_latency)
         missing = ping_all(self.bus.ping, self.ids, self.ping_rounds, self.ping_retry_s)
         if missing:
             raise StartupError([f"{self.name}: no reply from BEAR ID(s) {_ids(missing)} after {self.ping_rounds} "
@@ -382,21 +393,19 @@ class BearLegs:
             if error & self._fault_bits:
                 faults[device_id] = reply.flags(device_id)
         reading = LegReading(self._position.copy(), self._velocity.copy(), self._iq * self.kt,
-                             float(self._stamps.min()), reply.estop_ids(), faults, self._problem(stamp))
+                             float(self._stamps.min()), self._stamps.copy(), reply.estop_ids(), faults,
+                             self._loss_problem(stamp))
         self._monitor_tick += 1
         if self._monitor_tick >= MONITOR_EVERY_TICKS:
             self._monitor_tick = 0
             self.monitor()
         return reading
 
-    def _problem(self, now: float) -> str | None:
+    def silence(self, reading: LegReading, now: float) -> str | None:
+        return silence(self.ids, reading, now, self.dt, self.max_age_s)
+
+    def _loss_problem(self, now: float) -> str | None:
         ages = now - self._stamps
-        # Judged one tick ahead: a sample that will be too old when the safety stage looks at it is silence here,
-        # where the bus and the IDs are known (the safety stage's own age check could only say "stale joint data").
-        stale = np.flatnonzero(ages + self.dt > self.max_age_s)
-        if stale.size:
-            return (f"no reply from ID(s) {_ids(self.ids[k] for k in stale)} for {1e3 * float(ages[stale].max()):.1f} "
-                    f"ms > safety.max_sensor_age_s {1e3 * self.max_age_s:.1f} ms")
         over = self.loss.over()
         if over.size:
             share = self.loss.share()
@@ -415,7 +424,7 @@ class BearLegs:
         total = int(self.loss.total.sum())
         return {"bus": self.name, "cycles": self.cycles, "replies_lost": lost, "replies_lost_total": total,
                 "reply_loss_share": total / (self.cycles * len(self.ids)) if self.cycles else 0.0,
-                "watchdog_timeout": self.watchdog_count}
+                "watchdog_timeout": self.watchdog_count, "adapter": self.low_latency}
 
     def monitor(self) -> None:
         """Temperatures and voltage of the next BEAR in turn; a BEAR that does not answer is left to the next
@@ -533,7 +542,10 @@ class CanLegs:
         if self.cycles == 1:
             self.first_cycle = stamp
         self.last_cycle = stamp
-        return LegReading(state.position, state.velocity, state.torque, stamp)
+        return LegReading(state.position, state.velocity, state.torque, stamp, np.full(len(self.ids), stamp))
+
+    def silence(self, reading: LegReading, now: float) -> str | None:
+        return silence(self.ids, reading, now, self.config.dt, self.config.safety.max_sensor_age_s)
 
     def summary(self) -> str:
         span = self.last_cycle - self.first_cycle if self.cycles > 1 else math.nan
@@ -586,6 +598,10 @@ class ArmHolder:
         self._thread = threading.Thread(target=self._run, name="hw-arms", daemon=True)
         self._thread.start()
 
+    @property
+    def thread(self) -> threading.Thread | None:
+        return self._thread
+
     def hold(self) -> None:
         """Torque on and ramp to the hold pose (done by the thread)."""
         self._hold.set()
@@ -635,7 +651,7 @@ class HwBackend(Backend):
 
     def __init__(self, config: RobotConfig, *, check_imu: bool = True, check_contact: bool = False,
                  ping_rounds: int = 7, ping_retry_s: float = 0.5, clear_attempts: int = 6,
-                 bear_reply_timeout_s: float = 0.002, arm_ramp_s: float = 1.0,
+                 bear_reply_timeout_s: float | None = None, arm_ramp_s: float = 1.0,
                  switch_interval_s: float | None = GIL_SWITCH_INTERVAL_S):
         super().__init__(config)
         self.check_imu, self.check_contact = check_imu, check_contact
@@ -644,7 +660,8 @@ class HwBackend(Backend):
             self.legs = CanLegs(config, ping_rounds=ping_rounds, ping_retry_s=ping_retry_s)
         else:
             self.legs = BearLegs(config, ping_rounds=ping_rounds, ping_retry_s=ping_retry_s,
-                                 clear_attempts=clear_attempts, reply_timeout_s=bear_reply_timeout_s)
+                                 clear_attempts=clear_attempts, reply_timeout_s=bear_reply_timeout_s
+                                 or config.buses.bear.reply_timeout_s or DEFAULT_REPLY_TIMEOUT_S)
         self.arms = ArmHolder(config, ping_rounds=ping_rounds, ping_retry_s=ping_retry_s, ramp_s=arm_ramp_s)
         self.sense = None
         self.sense_port = config.buses.sense.port
@@ -663,6 +680,8 @@ class HwBackend(Backend):
         self._temperature_count = -1
         self._attitude = MahonyAttitude(STANDARD_GRAVITY)
         self._saved_switch_interval: float | None = None
+        self._bus: BusThread | None = None    # the legs' cycles while active (bruce_hw.bus_thread)
+        self.bus_cycle_us: dict | None = None  # its cycle-time percentiles, once it has ended
 
     # -- lifecycle -------------------------------------------------------------------------------------------
     def _on_configure(self) -> None:
@@ -721,9 +740,28 @@ class HwBackend(Backend):
         except BackendError:
             self.legs.damp()
             raise
+        # From here the legs' cycles run on their own thread; the first reading is taken here so read() never waits.
+        first = self.legs.cycle(None, retry=True)
+        self._bus = BusThread("hw-legs", self.legs.cycle, first, period_s=self.config.dt, hold_s=self.max_sensor_age)
+        self._bus.start()
+        threads = [self._bus.thread, self.sense.thread, self.arms.thread]
+        priority = above_the_caller([t for t in threads if t is not None])
+        if priority is not None:
+            log.info("hw backend: bus, sense and arm threads at SCHED_FIFO %d on the loop's CPU(s)", priority)
         self.arms.hold()
 
+    def _stop_bus(self) -> None:
+        """End the legs' bus thread (after its cycle in flight): the caller owns the port from here."""
+        bus, self._bus = self._bus, None
+        if bus is None:
+            return
+        if not bus.stop(BUS_STOP_TIMEOUT_S):
+            log.error("hw backend: %s: the bus thread did not end within %.0f ms", self.legs.name,
+                      1e3 * BUS_STOP_TIMEOUT_S)
+        self.bus_cycle_us = {**bus.cycle_us(), "cycles": bus.cycles}
+
     def _on_deactivate(self) -> None:
+        self._stop_bus()
         self._torque = None
         self.legs.disable()
 
@@ -732,6 +770,7 @@ class HwBackend(Backend):
         self.fault_stamp = time.monotonic()
         self._torque = None
         try:
+            self._stop_bus()
             self.legs.damp()
         except Exception as exc:  # best effort by design: this runs on the error paths
             log.error("hw backend: damping %s failed: %s", self.legs.name, exc)
@@ -742,6 +781,7 @@ class HwBackend(Backend):
     def _on_shutdown(self) -> None:
         atexit.unregister(self.shutdown)
         try:
+            self._stop_bus()
             self.legs.damp()
             self.legs.clear_watchdog()  # and damping again
         finally:
@@ -755,6 +795,7 @@ class HwBackend(Backend):
             self._saved_switch_interval = None
 
     def _close_all(self) -> None:
+        self._stop_bus()
         for close in (self.arms.close, self.legs.close, self._close_sense):
             try:
                 close()
@@ -768,7 +809,12 @@ class HwBackend(Backend):
 
     def link_report(self) -> dict:
         """Per-bus link figures for the run's stats: leg cycles and lost replies per ID, arm cycles."""
-        report = {"legs": self.legs.link_report(),
+        legs = self.legs.link_report()
+        bus = self._bus
+        cycle = {**bus.cycle_us(), "cycles": bus.cycles} if bus is not None else self.bus_cycle_us
+        if cycle is not None:
+            legs["bus_cycle_us"] = cycle
+        report = {"legs": legs,
                   "arms": {"bus": self.arms.name, "cycles": self.arms.cycles, "failed_cycles": self.arms.failed_cycles}}
         if self.sense is not None:
             report["sense"] = {"port": self.sense_port, "samples": self.sense.sample_count,
@@ -793,17 +839,24 @@ class HwBackend(Backend):
         from drivers.errors import BusTimeout, DriverError
 
         state = self._state
-        torque = self._torque if state is LifecycleState.ACTIVE else None
+        bus = self._bus
         try:
-            # Before the first command (inactive, or the activation's read-only cycle) lost replies are asked again.
-            reading = self.legs.cycle(torque, damping=state is LifecycleState.FAULT,
-                                      retry=torque is None and state is not LifecycleState.FAULT)
+            if bus is not None:  # active: the newest reading of the bus thread, never waited for
+                if bus.error is not None:
+                    raise bus.error
+                reading = bus.latest
+            else:  # inactive (lost replies are asked again) or damping: a cycle of our own
+                reading = self.legs.cycle(None, damping=state is LifecycleState.FAULT,
+                                          retry=state is not LifecycleState.FAULT)
         except BusTimeout as exc:
             raise self._fail(f"{self.legs.kind} {exc}") from exc  # names the port (channels) and the silent IDs
         except DriverError as exc:
             raise self._fail(f"{self.legs.name}: {exc}") from exc
-        if reading.problem and state is not LifecycleState.FAULT:
-            raise self._fail(f"{self.legs.name}: {reading.problem}")
+        except Exception as exc:  # whatever a vanished port raises on the bus thread (termios.error, OSError)
+            raise self._fail(f"{self.legs.name}: {type(exc).__name__}: {exc}") from exc
+        problem = reading.problem or self.legs.silence(reading, time.monotonic())
+        if problem and state is not LifecycleState.FAULT:
+            raise self._fail(f"{self.legs.name}: {problem}")
         if reading.faults and state is not LifecycleState.FAULT:
             raise self._fail(f"{self.legs.name}: " + "; ".join(
                 f"ID {i} reports {', '.join(flags)}" for i, flags in reading.faults.items()))
@@ -862,12 +915,26 @@ class HwBackend(Backend):
         if not np.all(np.isfinite(tau_m)):
             raise self._fail("non-finite torque command (nothing sent)")
         self._torque = np.minimum(np.maximum(tau_m, -self.torque_limit), self.torque_limit)
+        if self._bus is not None:
+            self._bus.post(self._torque)
 
 
 # -- attitude -------------------------------------------------------------------------------------------------
 # -- helpers --------------------------------------------------------------------------------------------------
 def _ids(ids) -> str:
     return ", ".join(str(i) for i in ids) or "none"
+
+
+def silence(ids: tuple[int, ...], reading: LegReading, now: float, dt: float, max_age_s: float) -> str | None:
+    """The actuators whose kept sample is too old at `now`. Judged one tick ahead: a sample that will be too old when
+    the safety stage looks at it is silence here, where the bus and the IDs are known (the safety stage's own age
+    check could only say "stale joint data")."""
+    ages = now - reading.stamps
+    stale = np.flatnonzero(ages + dt > max_age_s)
+    if stale.size:
+        return (f"no reply from ID(s) {_ids(ids[k] for k in stale)} for {1e3 * float(ages[stale].max()):.1f} "
+                f"ms > safety.max_sensor_age_s {1e3 * max_age_s:.1f} ms")
+    return None
 
 
 def ping_all(ping, ids, rounds: int, retry_s: float) -> list[int]:

@@ -534,6 +534,20 @@ class BearBus:
             self._serial = serial.Serial(port, baud, timeout=read_slice_s, write_timeout=write_timeout_s)
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DriverError(f"{port}: cannot open the BEAR bus at {baud} baud: {exc}") from exc
+        self.low_latency = self._low_latency()
+
+    def _low_latency(self) -> str:
+        """Ask the adapter for low latency (ASYNC_LOW_LATENCY; on an FTDI the kernel then sets its latency timer to
+        1 ms instead of 16 ms, which would otherwise hold every reply back); what was granted, in words."""
+        setter = getattr(self._serial, "set_low_latency_mode", None)
+        if setter is None:
+            return "low-latency mode: not available on this OS"
+        try:
+            setter(True)
+        except (ValueError, OSError) as exc:
+            return f"low-latency mode: not available on {self.port} ({str(exc).split(': ')[-1]})"
+        timer = _latency_timer_ms(self.port)
+        return "low-latency mode on" + (f", latency timer {timer} ms" if timer is not None else "")
 
     # -- lifecycle --
     def close(self) -> None:
@@ -747,6 +761,18 @@ class BearBus:
             self.stats.reject("truncated")
         self._parser.clear()
         return got
+
+
+def _latency_timer_ms(port: str) -> int | None:
+    """The FTDI latency timer of a USB-serial port (sysfs), None where there is none."""
+    import os
+
+    name = os.path.basename(os.path.realpath(port))
+    try:
+        with open(f"/sys/bus/usb-serial/devices/{name}/latency_timer") as f:
+            return int(f.read().strip())
+    except (OSError, ValueError):
+        return None
 
 
 def _as_sent(register: Register, value) -> int | float:

@@ -294,6 +294,11 @@ class SenseBoard:
         self._thread.start()
         return self
 
+    @property
+    def thread(self) -> threading.Thread | None:
+        """The reader thread (the hw backend schedules it with its other I/O threads)."""
+        return self._thread
+
     def close(self) -> None:
         """Board to IDLE (as the official shutdown does, best effort), reader stopped, port closed."""
         if self._serial is None:

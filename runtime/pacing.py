@@ -1,7 +1,9 @@
 """Real-time pacing by absolute deadlines on the monotonic clock.
 
 Sleep until shortly before the deadline, then spin: plain sleeps overshoot by tens of microseconds, and
-relative sleeps (sleep(dt - elapsed)) drift. A tick that starts more than `late_after_s` past its deadline is
+relative sleeps (sleep(dt - elapsed)) drift. The spin yields the GIL on every turn (sleep(0)): the hw backend's bus
+thread runs its cycle in this part of the tick, and a spin that held the GIL would keep it waiting up to the
+interpreter's switch interval. A tick that starts more than `late_after_s` past its deadline is
 late; if whole periods were missed, their ticks are skipped and counted, never run in a burst to catch up.
 """
 
@@ -37,7 +39,7 @@ class Pacer:
             if remaining > 0:
                 time.sleep(remaining / 1e9)
             while (now := time.monotonic_ns()) < self.deadline_ns:
-                pass
+                time.sleep(0)
             behind = now - self.deadline_ns
         self.deadline_ns += self.period_ns
         return behind

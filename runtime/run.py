@@ -2,7 +2,7 @@
 
 Start-up follows the robot: configure (inactive, reads only) -> load and check the models, warm up their
 sessions -> read the measured pose -> start telemetry -> ask for real-time scheduling -> activate -> loop.
-A tick: read -> safety triggers -> policy (every `policy_decimation` ticks) -> Eq. 8 -> PINN -> Eq. 9 ->
+A tick: read -> safety triggers -> policy (once per policy period on the backend's clock) -> Eq. 8 -> PINN -> Eq. 9 ->
 safety filter -> write -> telemetry. A trip of the safety stage (or SIGINT/SIGTERM) puts the backend into
 its damping state at once and holds it for `safety.damping_hold_s` while still reading; the end of
 `--duration` shuts the backend down (through damping). The nominal controller is the ONNX policy, the
@@ -225,7 +225,10 @@ class RunSummary:
         legs = (self.link or {}).get("legs", {})
         if "replies_lost" in legs:
             lost = {i: n for i, n in legs["replies_lost"].items() if n}
-            lines.append(f"  {legs['bus']}: {legs['cycles']} cycles, {legs['replies_lost_total']} replies lost "
+            cycle = legs.get("bus_cycle_us") or {}
+            timing = (f" (bus thread: cycle p50 {cycle['p50']:.0f} / p99 {cycle['p99']:.0f} / max {cycle['max']:.0f} "
+                      f"µs)") if cycle.get("p50") is not None else ""
+            lines.append(f"  {legs['bus']}: {legs['cycles']} cycles{timing}, {legs['replies_lost_total']} replies lost "
                          f"({100 * legs['reply_loss_share']:.2f} %)"
                          + (": " + ", ".join(f"ID {i} {n}" for i, n in lost.items()) if lost else ""))
         if self.telemetry_dropped:
@@ -434,11 +437,11 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         stop.abort = False
         if stop.cause is not None:  # came while `abort` was being cleared
             raise StopRequested(f"{stop.cause} received")
-        backend.activate()
         controller.reset(robot.joints.q)
         estimator.reset(robot)
         if pinn_runner is not None:
             pinn_runner.reset()
+        backend.activate()  # the last step before the loop: the first tick's reading is as fresh as it can be
         until = "until Ctrl-C" if duration is None else f"for {duration:g} s"
         commanded = "" if commands is None else f", {getattr(commands, 'name', type(commands).__name__)}"
         print(f"bruce-run: {backend.name} backend active, {controller_name}{commanded}, transfer {transfer}, {until}"
@@ -500,6 +503,11 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     safety = SafetyStage(config)
     n_ticks = None if duration is None else round(duration * config.loop_hz)
     decimation = config.policy_decimation
+    # The policy runs on the backend's clock, once per policy period from the first tick: a missed deadline does not
+    # slow the gait clock or the command schedule (docs/timing.md).
+    policy_period_us = round(1e6 / config.policy_hz)
+    policy_period = -1
+    first_now = None
     eq8, eq9 = config.eq8, config.eq9
     truth = summary.truth
     poses = telemetry is not None and hasattr(backend, "body_poses")
@@ -510,7 +518,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     pacer = Pacer(config.dt)
     late_ns = pacer.late_ns
     pacer.start()
-    tick, previous_start, late = 0, 0, False
+    tick, previous_start = 0, 0
     a = q_hat = qd_hat = None
     recorder_stop = None
     standstill = np.zeros(3)
@@ -520,20 +528,23 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
         while stop.cause is None and (n_ticks is None or tick < n_ticks):
             if realtime:
                 behind = pacer.wait()
-                late = behind > late_ns
-                if late:
+                if behind > late_ns:
                     stats.overrun(behind)
             t0 = perf()
             robot = backend.read()
             t1 = perf()
             now = backend.clock()  # read once: the age check and the telemetry timeline share it
             stats.data_age.add(max(0, int(1e9 * (now - min(robot.joints.stamp, robot.imu.stamp)))))
-            safety.check(robot, now, late)
+            safety.check(robot, now)
             if safety.tripped:
                 break
             q, qd = robot.joints.q, robot.joints.qd
             estimator.update(robot)
-            if tick % decimation == 0:
+            if first_now is None:
+                first_now = now
+            period_now = round(1e6 * (now - first_now)) // policy_period_us
+            if period_now != policy_period:
+                policy_period = period_now
                 command = standstill if commands is None else commands.at(now - clock0)
                 try:
                     a = controller(robot, estimator.estimate(), command)

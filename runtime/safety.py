@@ -2,9 +2,10 @@
 
 Per tick, in this order:
 1. Triggers of the damping state: an e-stop input; non-finite joint or IMU data; joint or IMU data older than
-   `safety.max_sensor_age_s`; tilt beyond `safety.tilt_limit_deg` for `safety.tilt_ticks` ticks; a streak of
-   `safety.overrun_streak` late ticks. The loop adds its own (a model returning non-finite values, SIGINT or
-   SIGTERM) through `trip()`.
+   `safety.max_sensor_age_s`; tilt beyond `safety.tilt_limit_deg` for `safety.tilt_ticks` ticks; an achieved
+   loop rate below `safety.min_rate_hz` over the last `safety.rate_window_s` (on the backend's clock: the robot's
+   time; a late tick alone is not a fault, docs/timing.md). The loop adds its own (a model returning non-finite
+   values, SIGINT or SIGTERM) through `trip()`.
 2. The command filter: a non-finite torque trips; torque that pushes a joint further past a position soft
    limit (`joints.position_limits` shrunk by `safety.position_margin`) or further beyond its velocity limit is
    removed; the soft start scales torques in over `safety.torque_ramp_s`; the rate of change is limited to
@@ -48,7 +49,11 @@ class SafetyStage:
         self.cos_tilt_limit = math.cos(math.radians(cfg.tilt_limit_deg))
         self.tilt_ticks = cfg.tilt_ticks
         self.max_age = cfg.max_sensor_age_s
-        self.overrun_streak = cfg.overrun_streak
+        # The rate floor: the last `rate_ticks` tick starts must span at most `rate_window_s`. A ring of their
+        # times, filled from the first check on (a window is judged once it is full).
+        self.min_rate_hz = cfg.min_rate_hz
+        self.rate_window_s = cfg.rate_window_s
+        self.rate_ticks = max(2, math.ceil(cfg.min_rate_hz * cfg.rate_window_s))
         self.damping_kd = cfg.damping_kd
         self.reset()
 
@@ -58,7 +63,8 @@ class SafetyStage:
         self.tick = 0
         self.previous = np.zeros(self.config.n_joints)
         self.tilted_ticks = 0
-        self.late_streak = 0
+        self.starts = np.full(self.rate_ticks, -math.inf)  # the backend's clock at each of the last checks
+        self.checks = 0
         self.transitions: list[tuple[int, str]] = []
 
     @property
@@ -78,10 +84,18 @@ class SafetyStage:
         self._enter(SafetyState.DAMPING, f"safety: damping at tick {self.tick}: {cause}")
 
     # -- triggers ----------------------------------------------------------------------------------------
-    def check(self, robot: RobotState, now: float, late: bool = False) -> None:
-        """Sensor-side triggers for this tick's reading; `now` is on the backend's clock, `late` from the pacer."""
+    def check(self, robot: RobotState, now: float) -> None:
+        """Sensor-side triggers for this tick's reading, and the rate floor; `now` is on the backend's clock."""
         if self.state is SafetyState.DAMPING:
             return
+        k = self.checks % self.rate_ticks
+        oldest = self.starts[k]  # the start `rate_ticks` ticks ago
+        self.starts[k] = now
+        self.checks += 1
+        if now - oldest > self.rate_window_s and oldest > -math.inf:
+            return self.trip(f"loop ran {self.rate_ticks} ticks in {1e3 * (now - oldest):.1f} ms: below "
+                             f"safety.min_rate_hz {self.min_rate_hz:g} Hz over safety.rate_window_s "
+                             f"{1e3 * self.rate_window_s:g} ms")
         joints, imu = robot.joints, robot.imu
         if robot.estop:
             return self.trip("e-stop input asserted")
@@ -101,9 +115,6 @@ class SafetyStage:
                 return self.trip(f"tilt {tilt:.0f} deg > safety.tilt_limit_deg for {self.tilted_ticks} ticks")
         else:
             self.tilted_ticks = 0
-        self.late_streak = self.late_streak + 1 if late else 0
-        if self.late_streak >= self.overrun_streak:
-            return self.trip(f"{self.late_streak} late ticks in a row (safety.overrun_streak)")
 
     # -- command filter ----------------------------------------------------------------------------------
     def filter(self, tau: np.ndarray, robot: RobotState) -> np.ndarray:

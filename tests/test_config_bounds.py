@@ -78,7 +78,9 @@ def test_bear_torque_limit_keeps_the_current_within_the_bears_rating():
     ("safety.soft_start_s=.inf", ("safety.soft_start_s: expected a number in (0, 30] s", "got inf")),
     ("safety.tilt_limit_deg=720", ("safety.tilt_limit_deg: expected a number in (0, 90) deg", "got 720")),
     ("safety.tilt_ticks=0", ("safety.tilt_ticks: expected an integer in [1, 1000] ticks", "got 0")),
-    ("safety.overrun_streak=2.5", ("safety.overrun_streak: expected an integer in [1, 1000]", "got 2.5")),
+    ("safety.min_rate_hz=2000", ("safety.min_rate_hz: expected a number in [50, 1000] Hz", "got 2000")),
+    ("safety.rate_window_s=0.001", ("safety.rate_window_s: expected a number in [0.01, 1] s", "got 0.001")),
+    ("buses.bear.reply_timeout_s=0.01", ("buses.bear.reply_timeout_s", "less than safety.max_sensor_age_s")),
     ("safety.reply_loss_max=1.5", ("safety.reply_loss_max: expected a number in (0, 0.5]", "got 1.5")),
     ("safety.reply_loss_window_s=0", ("safety.reply_loss_window_s: expected a number in [0.05, 60] s",)),
 ])

@@ -57,7 +57,7 @@ def wait_for(predicate, timeout_s: float = 5.0):
 def test_watchdogs_are_written_and_read_back_before_any_motor_is_enabled(emulator, hw_config):
     t0 = time.monotonic()
     backend = make_hw_backend(hw_config, check_imu=False)
-    summary = run_session(backend, hw_config, duration=0.3, realtime=False, controller_kind="standing")
+    summary = run_session(backend, hw_config, duration=0.3, realtime=True, controller_kind="standing")
     count = round(hw_config.buses.bear.watchdog_s / hw_config.buses.bear.watchdog_unit_s)
     assert summary.link["legs"]["watchdog_timeout"] == count
     events = wait_for(lambda: [e for e in events_since(emulator, t0) if "torque_enable 3 -> 0" in e[1]
@@ -79,7 +79,7 @@ def test_an_unplugged_leg_bus_ends_with_every_bear_damping_by_its_own_watchdog(e
     backend = make_hw_backend(hw_config, check_imu=False)
     stats = tmp_path / "s.json"
     with pytest.raises(BackendError, match=r"no reply from ID\(s\) 1, 2, 3, 4, 5, 6, 7, 8, 9, 10"):
-        run_session(backend, hw_config, duration=3.0, realtime=False, controller_kind="standing",
+        run_session(backend, hw_config, duration=3.0, realtime=True, controller_kind="standing",
                     commands=FaultAt(emulator, "unplug bear"), stats_path=stats)
     data = json.loads(stats.read_text())
     assert data["exit_code"] == ExitCode.BUS_FAULT and data["fault_class"] == "bus" and data["ticks"] > 0
@@ -146,7 +146,7 @@ class StopMidStartUp(HwBackend):
 def test_sigterm_during_start_up_never_enables_a_motor(emulator, hw_config, tmp_path):
     t0 = time.monotonic()
     stats = tmp_path / "s.json"
-    summary = run_session(StopMidStartUp(hw_config, check_imu=False), hw_config, duration=3.0, realtime=False,
+    summary = run_session(StopMidStartUp(hw_config, check_imu=False), hw_config, duration=3.0, realtime=True,
                           controller_kind="standing", stats_path=stats, stop=StopFlag())
     assert summary.exit_code == ExitCode.OK and summary.ticks == 0
     assert "no motor was enabled" in json.loads(stats.read_text())["stop_cause"]
@@ -159,7 +159,7 @@ def test_sigterm_during_start_up_never_enables_a_motor(emulator, hw_config, tmp_
 @pytest.mark.parametrize("kind", ["drop", "corrupt"])
 def test_one_percent_lost_replies_are_counted_not_faults(emulator, hw_config, kind):
     emulator.send(f"loss bear {0.01 if kind == 'drop' else 0} {0.01 if kind == 'corrupt' else 0} 7")
-    summary = run_session(make_hw_backend(hw_config, check_imu=False), hw_config, duration=4.0, realtime=False,
+    summary = run_session(make_hw_backend(hw_config, check_imu=False), hw_config, duration=4.0, realtime=True,
                           controller_kind="standing")
     legs = summary.link["legs"]
     assert summary.stop_cause == "duration reached" and summary.exit_code == ExitCode.OK, summary.stop_cause
@@ -172,5 +172,5 @@ def test_five_percent_lost_replies_end_in_damping_naming_the_loss_rate(emulator,
     backend = make_hw_backend(hw_config, check_imu=False)
     with pytest.raises(BackendError, match=r"reply loss ID \d+ [\d.]+ % over the last 1000 cycles > "
                                            r"safety.reply_loss_max 3 %"):
-        run_session(backend, hw_config, duration=10.0, realtime=False, controller_kind="standing")
+        run_session(backend, hw_config, duration=10.0, realtime=True, controller_kind="standing")
     assert backend.state.value == "unconfigured" and "reply loss" in backend.fault_cause

@@ -128,20 +128,33 @@ def test_stale_sensor_data_trips(config, which):
     assert stage.tripped and f"stale {which} data" in stage.cause
 
 
-def test_estop_and_overrun_streak_trip(config):
+def test_estop_trips(config):
     stage = running_stage(config)
     stage.check(robot(config, estop=True), now=0.0)
     assert stage.tripped and "e-stop" in stage.cause
 
+
+def test_rate_floor_trips_on_a_slow_window_not_on_one_late_tick(config):
+    """A late tick is not a fault; fewer than safety.min_rate_hz ticks over safety.rate_window_s is one."""
+    cfg = config.safety
     stage = running_stage(config)
-    for _ in range(config.safety.overrun_streak - 1):
-        stage.check(robot(config), now=0.0, late=True)
-    stage.check(robot(config), now=0.0, late=False)  # an on-time tick ends the streak
-    for _ in range(config.safety.overrun_streak - 1):
-        stage.check(robot(config), now=0.0, late=True)
-    assert not stage.tripped
-    stage.check(robot(config), now=0.0, late=True)
-    assert stage.tripped and "late ticks in a row" in stage.cause
+    now, dt = 0.0, config.dt
+    for _ in range(3 * stage.rate_ticks):  # on time
+        now += dt
+        stage.check(robot(config, stamp=now, imu_stamp=now), now=now)
+    now += 0.4 * cfg.rate_window_s  # one stall of 20 ms: the window still holds enough ticks
+    for _ in range(2 * stage.rate_ticks):
+        stage.check(robot(config, stamp=now, imu_stamp=now), now=now)
+        now += dt
+    assert not stage.tripped, stage.cause
+    slow = 1.0 / (0.8 * cfg.min_rate_hz)  # steadily below the floor
+    for _ in range(stage.rate_ticks + 1):
+        now += slow
+        stage.check(robot(config, stamp=now, imu_stamp=now), now=now)
+        if stage.tripped:
+            break
+    assert stage.tripped and f"loop ran {stage.rate_ticks} ticks in" in stage.cause
+    assert "below safety.min_rate_hz 500 Hz over safety.rate_window_s 50 ms" in stage.cause
 
 
 def test_damping_is_sticky_and_keeps_the_first_cause(config):

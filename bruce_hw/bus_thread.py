@@ -1,0 +1,105 @@
+"""A bus's cycles on a thread of its own, so that the 1 kHz tick never waits for serial I/O.
+
+BRUCE-OP runs its BEAR bulk cycle in a process of its own and shares the latest state through shared memory; this
+is the same idea inside the hw backend. The control thread's write() hands over the newest command and wakes the
+thread, which starts a cycle at once (or right after the one in flight); read() takes the newest complete reading
+and never waits. So a bus cycle overlaps the tick's pacing sleep instead of its work: with a fast bus the reading a
+tick gets is a fraction of a millisecond old, with a slow one (a USB adapter with 2 ms of latency) the loop still
+ticks at its rate on readings as old as the bus makes them, and the data-age check judges them.
+
+Without a wake-up the thread cycles on its own every `period_s`, resending the newest command (goal writes are
+idempotent; before the first one, read-only cycles), so a tick that runs late still finds a fresh reading. It does
+that only while the newest command (or the start) is at most `hold_s` old: a control thread that hangs (or a
+process that is frozen) stops the cycles, and the motors' own watchdogs take over, as they do for a killed process.
+An exception in a cycle ends the thread; `error` keeps it for the control thread to raise.
+
+Scheduling: the hw backend puts this thread one real-time priority step above the loop (`bruce_hw.io_priority`).
+
+Cycle durations go into a fixed ring (`CYCLE_RING` of them, microseconds) for the run's percentiles: no allocation
+per cycle.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+CYCLE_RING = 1 << 16
+
+
+class BusThread:
+    def __init__(self, name: str, cycle: Callable[[Any], Any], first_reading: Any, *, period_s: float, hold_s: float):
+        self.name = name
+        self._cycle = cycle
+        self.period_s = period_s
+        self.hold_s = hold_s
+        self._latest = first_reading
+        self._command: Any = None
+        self._command_stamp = time.monotonic()
+        self._wake = threading.Event()
+        self._stopping = False
+        self.error: BaseException | None = None
+        self.cycles = 0
+        self.idle_waits = 0        # times the thread stopped cycling on a command older than hold_s
+        self._durations = np.zeros(CYCLE_RING, dtype=np.int32)
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+
+    @property
+    def latest(self) -> Any:
+        """The newest complete reading (a reference swap: never torn, never waited for)."""
+        return self._latest
+
+    @property
+    def thread(self) -> threading.Thread:
+        return self._thread
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def post(self, command: Any) -> None:
+        """The command for the next cycle; starts it now (or right after the cycle in flight)."""
+        self._command = command
+        self._command_stamp = time.monotonic()
+        self._wake.set()
+
+    def stop(self, timeout_s: float = 0.1) -> bool:
+        """End the thread after the cycle in flight; True when it has ended within `timeout_s`."""
+        self._stopping = True
+        self._wake.set()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(timeout_s)
+        return not self._thread.is_alive()
+
+    def cycle_us(self) -> dict[str, float | None]:
+        """p50/p99/max of the cycle durations (the newest CYCLE_RING of them)."""
+        n = min(self.cycles, CYCLE_RING)
+        if not n:
+            return {"p50": None, "p99": None, "max": None}
+        values = self._durations[:n]
+        return {"p50": float(np.percentile(values, 50)), "p99": float(np.percentile(values, 99)),
+                "max": float(values.max())}
+
+    def _run(self) -> None:
+        perf = time.perf_counter_ns
+        self._command_stamp = time.monotonic()
+        while True:
+            woken = self._wake.wait(self.period_s) if self.cycles else True  # the first cycle at once
+            self._wake.clear()
+            if self._stopping:
+                return
+            if not woken and time.monotonic() - self._command_stamp > self.hold_s:
+                self.idle_waits += 1  # the control thread is gone: no cycles, the motors' watchdogs take over
+                self._wake.wait()
+                continue
+            t0 = perf()
+            try:
+                self._latest = self._cycle(self._command)
+            except BaseException as exc:  # ends the thread; the control thread raises it on its next read
+                self.error = exc
+                return
+            self._durations[self.cycles % CYCLE_RING] = min((perf() - t0) // 1000, 2**31 - 1)
+            self.cycles += 1

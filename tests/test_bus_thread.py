@@ -1,0 +1,119 @@
+"""The legs' bus thread (bruce_hw.bus_thread) on a fake cycle: commands reach the bus, read() never waits for a slow
+cycle, a hung control thread stops the cycles (the motors' watchdogs take over), a failing cycle is kept for the
+control thread. Bounds are one-sided where a loaded machine could only make them pass later, never earlier."""
+
+import threading
+import time
+
+from bruce_hw.bus_thread import BusThread
+
+
+class FakeBus:
+    def __init__(self, cycle_s: float = 0.0, fail_at: int | None = None):
+        self.cycle_s, self.fail_at = cycle_s, fail_at
+        self.sent: list = []
+        self.lock = threading.Lock()
+
+    def cycle(self, command):
+        with self.lock:
+            if self.fail_at is not None and len(self.sent) >= self.fail_at:
+                raise OSError("the adapter is gone")
+            self.sent.append(command)
+            n = len(self.sent)
+        time.sleep(self.cycle_s)
+        return ("reading", n, command)
+
+
+def wait_for(predicate, timeout_s: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.001)
+    return False
+
+
+def test_a_posted_command_reaches_the_bus_and_its_reading_comes_back():
+    bus = FakeBus()
+    thread = BusThread("test-bus", bus.cycle, ("first", 0, None), period_s=0.001, hold_s=1.0)
+    assert thread.latest == ("first", 0, None)
+    thread.start()
+    try:
+        thread.post("tau-1")
+        assert wait_for(lambda: thread.latest[2] == "tau-1")
+        assert "tau-1" in bus.sent
+        assert bus.sent[0] is None  # before the first command: read-only cycles
+    finally:
+        assert thread.stop()
+    assert thread.cycles == len(bus.sent) and thread.cycle_us()["p50"] is not None
+
+
+def test_latest_never_waits_for_a_slow_cycle():
+    bus = FakeBus(cycle_s=0.05)
+    thread = BusThread("test-bus", bus.cycle, ("first", 0, None), period_s=0.001, hold_s=1.0)
+    thread.start()
+    try:
+        assert wait_for(lambda: thread.cycles >= 1)
+        thread.post("tau")
+        t0 = time.perf_counter()
+        reading = thread.latest
+        assert time.perf_counter() - t0 < 0.01  # a reference, not a wait for the 50 ms cycle in flight
+        assert reading[2] != "tau"  # that cycle has not finished
+        assert wait_for(lambda: thread.latest[2] == "tau")
+    finally:
+        thread.stop(0.5)
+
+
+def test_the_cycles_stop_when_no_command_comes_for_hold_s():
+    """A hung control thread must not keep feeding the motors its last torque: the cycles stop, so the motors'
+    own watchdogs see silence."""
+    bus = FakeBus()
+    thread = BusThread("test-bus", bus.cycle, ("first", 0, None), period_s=0.001, hold_s=0.02)
+    thread.start()
+    try:
+        thread.post("tau")
+        assert wait_for(lambda: thread.idle_waits >= 1)
+        stopped_at = len(bus.sent)
+        time.sleep(0.1)
+        assert len(bus.sent) == stopped_at  # silent while nobody posts
+        assert all(c in (None, "tau") for c in bus.sent)
+        thread.post("tau-2")  # the control thread is back: cycles resume
+        assert wait_for(lambda: thread.latest[2] == "tau-2")
+    finally:
+        thread.stop()
+
+
+def test_self_paced_cycles_repeat_the_newest_command_between_posts():
+    bus = FakeBus()
+    thread = BusThread("test-bus", bus.cycle, ("first", 0, None), period_s=0.002, hold_s=0.5)
+    thread.start()
+    try:
+        thread.post("tau")
+        posted = len(bus.sent)
+        assert wait_for(lambda: len(bus.sent) >= posted + 5)  # no further posts: the thread cycles on its own
+        assert bus.sent[-1] == "tau"
+    finally:
+        thread.stop()
+
+
+def test_a_failing_cycle_ends_the_thread_and_is_kept_for_the_control_thread():
+    bus = FakeBus(fail_at=3)
+    thread = BusThread("test-bus", bus.cycle, ("first", 0, None), period_s=0.001, hold_s=1.0)
+    thread.start()
+    thread.post("tau")
+    assert wait_for(lambda: thread.error is not None)
+    assert isinstance(thread.error, OSError) and "adapter is gone" in str(thread.error)
+    assert wait_for(lambda: not thread.thread.is_alive())
+    assert thread.stop()
+
+
+def test_stop_ends_the_thread_after_the_cycle_in_flight():
+    bus = FakeBus(cycle_s=0.02)
+    thread = BusThread("test-bus", bus.cycle, ("first", 0, None), period_s=0.001, hold_s=1.0)
+    thread.start()
+    thread.post("tau")
+    assert wait_for(lambda: len(bus.sent) >= 1)
+    assert thread.stop(timeout_s=2.0)
+    n = len(bus.sent)
+    time.sleep(0.05)
+    assert len(bus.sent) == n
