@@ -712,3 +712,9 @@ def test_emulator_answers_any_framed_instruction_with_well_formed_replies(device
     assert all(p.id in (1, 2) for p in found)
     if device_id == 0xFE and code != 0x12:
         assert found == []
+
+
+def test_low_latency_mode_is_asked_for_and_reported(bus, emulator):
+    """A pseudo-terminal has no ASYNC_LOW_LATENCY flag: the driver says so, naming the port, and runs on."""
+    assert bus.low_latency.startswith("low-latency mode: not available on " + emulator.path), bus.low_latency
+    assert bus.ping(1).id == 1
