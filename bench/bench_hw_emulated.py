@@ -79,7 +79,8 @@ def report(name: str, stats: dict, emulator: EmulatorProcess, no_delay: bool) ->
     read = stats["sections_us"].get("read", {})
     goal = ""
     if no_delay:
-        goal = f" (goal >= {BULK_RATE_GOAL_HZ:.0f}/s with no delay: {'met' if bulk_rate >= BULK_RATE_GOAL_HZ else 'MISSED'})"
+        met = "met" if bulk_rate >= BULK_RATE_GOAL_HZ else "MISSED"
+        goal = f" (goal >= {BULK_RATE_GOAL_HZ:.0f}/s with no delay: {met})"
     print(f"     read p50/p99 {us(read.get('p50'))}/{us(read.get('p99'))} µs; bus thread: {legs.get('cycles', 0)} "
           f"bulk cycles = {bulk_rate:.0f}/s{goal}, cycle p50/p99/max {us(cycle.get('p50'))}/{us(cycle.get('p99'))}/"
           f"{us(cycle.get('max'))} µs; replies lost {legs.get('replies_lost_total', '?')}")

@@ -29,9 +29,9 @@ ImuSample.orientation: the board measures none, so the backend fills it from an 
 the orientation when there is one and the raw accelerometer's direction otherwise, which the motors' reaction forces
 swing by tens of degrees.
 
-Lost replies: a BEAR reply lost or corrupted within a cycle is not a fault. The bus thread's cycle never retries (the
-next cycle asks again a millisecond later); the actuator keeps its last sample, whose stamp ages (JointState.stamp is the oldest
-actuator's). Lost replies are counted per ID (`link_report`, the run's stats).
+Lost replies: a BEAR reply lost or corrupted within a cycle is not a fault. The bus thread's cycle never retries
+(the next cycle asks again a millisecond later); the actuator keeps its last sample, whose stamp ages
+(JointState.stamp is the oldest actuator's). Lost replies are counted per ID (`link_report`, the run's stats).
 
 Fault paths (each lands in damping, `_on_fault`: BEAR torque_enable = 3 on every reachable actuator, CAN motors a
 damping-only command, the arms keep holding):
@@ -72,8 +72,8 @@ import numpy as np
 from bruce_hw.attitude import MahonyAttitude
 from bruce_hw.backend import Backend, BackendError, LifecycleState
 from bruce_hw.bus_thread import BusThread
-from bruce_hw.io_priority import above_the_caller
 from bruce_hw.config import ASSUMED_BEAR_WATCHDOG_UNIT_S, RobotConfig
+from bruce_hw.io_priority import above_the_caller
 from bruce_hw.types import JointCommand, JointState, RobotState
 
 log = logging.getLogger("bruce_hw.hw")

@@ -354,8 +354,8 @@ class StatusParser:
     more bytes come. Never raises on any input; holds at most one frame's worth of bytes.
 
     After a bad checksum it drops one byte only, not the claimed frame: a real packet may start inside it. A frame
-    whose checksum matches but which holds a header (FF FF) is taken for a cut reply completed by the next one and
-    dropped up to that header.
+    whose checksum matches but which holds the start of an expected reply (FF FF, ID, LEN, error byte) is taken for a
+    cut reply completed by the next one and dropped up to that start.
     """
 
     def __init__(self, stats: LinkStats | None = None):
@@ -379,6 +379,24 @@ class StatusParser:
         dropped = len(self._buffer)
         self._buffer.clear()
         return dropped
+
+    def _reply_start_inside(self, buf: bytearray, total: int) -> int | None:
+        """Where, inside the frame buf[:total], the bytes read as the start of an expected reply: FF FF, an expected
+        ID, the expected LEN, an error byte with bit 7 (those present in the buffer). FF FF alone is not enough: a
+        float32 value holds it (present_iq 4.28 A is ff ff 88 40), and a motor at rest sends it every cycle."""
+        start = 2
+        while (inner := buf.find(HEADER, start, total)) != -1:
+            tail = buf[inner + 2:inner + 5]
+            ok = len(tail) == 3
+            if ok:
+                device_id, length, error = tail
+                ok = (device_id not in (0xFF, BROADCAST_ID) and error & 0x80
+                      and (self._ids is None or device_id in self._ids)
+                      and (length == self._length if self._length is not None else length >= 2))
+            if ok:
+                return inner
+            start = inner + 1
+        return None
 
     def feed(self, data: bytes | bytearray) -> list[StatusPacket]:
         buf = self._buffer
@@ -408,11 +426,11 @@ class StatusParser:
                 self.stats.reject("checksum")
                 del buf[:1]
                 continue
-            inner = buf.find(HEADER, 2, total)
-            if inner != -1:
-                # A header inside the frame: most likely a reply cut short and completed by the next one's bytes,
-                # whose 8-bit checksum matched by chance (1 in 256), which would hand the loop a made-up sample.
-                # Resynchronise there; a genuine reply lost this way (data bytes FF FF, ~1e-4) is one lost reply.
+            inner = self._reply_start_inside(buf, total)
+            if inner is not None:
+                # A reply's start inside the frame: a reply cut short and completed by the next one's bytes, whose
+                # 8-bit checksum matched by chance (1 in 256), which would hand the loop a made-up sample.
+                # Resynchronise there.
                 self.stats.reject("truncated")
                 del buf[:inner]
                 continue

@@ -9,6 +9,26 @@ buses.can.motors is set (one zero command each: position, velocity, torque). Exi
 answers without a fault flag, 1 when a device is missing or reports a fault (the BEAR E-stop bit alone, which
 also means damping, e.g. after a bruce-run, is reported but is not a fault), 2 for a bad config.
 
+Round trips (`--rtt-cycles N`, default 300; 0 skips them): how fast each bus answers, measured from this host, and
+whether it can keep up with the 1 kHz loop, the first thing to know after wiring. All read-only: nothing is written,
+nothing moves.
+- BEAR: N read-only bulk cycles (`BearBus.bulk_cycle(ids, None)`: the tick's bulk read of every answering actuator,
+  without its goal writes) back to back, with a 50 ms reply timeout so a slow reply is timed, not lost; a cycle that
+  lost a reply anyway is counted, not timed. Skipped while a BEAR reads torque_enable 1: every packet feeds its
+  watchdog, which would keep a motor enabled that should go to damping.
+- Dynamixel: N sync reads of present velocity and position (the arm thread's read).
+- Sense board: N polls 1 ms apart of the stream as a control tick sees it: the packet rate (mean interval) and the
+  age of the newest packet at each poll. A fixed latency of the stream cannot be seen from the host (the board sends
+  no time); late or bunched packets show in the age.
+Printed per bus: p50 / p99 / max and a verdict. A tick is 1 ms and its own work (estimator, policy, safety) takes
+about COMPUTE_S = 0.2 ms besides the bus, so a bus "holds 1 kHz" when its p99 <= 0.8 ms; "holds 1 kHz only with late
+ticks or a bus thread" when p99 is above that but p50 <= 1 ms (on average it keeps up, but one tick in a hundred or
+more overruns unless the bus runs on its own thread, overlapped with the work); otherwise it "cannot hold 1 kHz:
+expect N Hz", N = 1 / (p50 + 0.2 ms) rounded down to 10 Hz, what a loop with the bus in series would run at. The arm
+bus only needs the arm thread's 50 Hz (p99 within half its 20 ms period); the sense board holds 1 kHz at >= 950
+packets/s with a tick's data at most 2 ms old in 99 % of ticks. A bus that cannot keep up is a warning, not a failed
+check (the exit status is about the devices).
+
 `--probe-watchdog` does something else, and writes: it measures the unit of the BEAR `watchdog_timeout` register
 (undocumented; `buses.bear.watchdog_unit_s` in the config) on one BEAR (`--probe-id`, default the first of
 buses.bear.ids). The BEAR is put in torque mode with goal current 0, its watchdog_timeout set to a count N, enabled,
@@ -29,6 +49,8 @@ import sys
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, RobotConfig, load_config
 
 PROG = "bruce-hw-check"
@@ -37,6 +59,17 @@ BEAR_REGISTERS = ("torque_enable", "winding_temperature", "powerstage_temperatur
 DXL_HARDWARE_ERROR, DXL_INPUT_VOLTAGE, DXL_TEMPERATURE = 70, 144, 146  # X-series control table
 TEMPERATURE_WARN_C = 75.0  # BRUCE-OP's warnings (research notes §5.5)
 VOLTAGE_WARN_V = 14.5
+# -- round trips (module docstring)
+RTT_CYCLES = 300
+TICK_S = 0.001
+COMPUTE_S = 0.0002            # a tick's own work besides the bus
+HOLDS_P99_S = TICK_S - COMPUTE_S
+ARM_RATE_HZ = 50.0            # the arm thread's rate (bruce_hw/hw.py)
+SENSE_MIN_RATE_HZ = 950.0
+SENSE_MAX_AGE_P99_S = 0.002
+RTT_REPLY_TIMEOUT_S = 0.05    # a slow reply is timed, not lost
+PRESENCE_TIMEOUT_S = 0.02     # the BEAR pings and reads: a device this late is as good as missing
+DXL_READ_ADDRESS, DXL_READ_LENGTH = 128, 8  # present velocity (128) and present position (132), 4 bytes each
 
 
 @dataclass
@@ -63,18 +96,20 @@ class BusReport:
         return "\n".join([head, *body])
 
 
-def check_bear(config: RobotConfig) -> BusReport:
+def check_bear(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
     from drivers.bear import FAULT_BITS, BearBus, BearError
     from drivers.errors import BusTimeout, DriverError
 
     bus_cfg = config.buses.bear
     report = BusReport(f"BEAR bus {bus_cfg.port} ({bus_cfg.baud} baud, IDs {_ids(bus_cfg.ids)})")
     try:
-        bus = BearBus(bus_cfg.port, bus_cfg.baud)
+        # A late answer is still an answer: how late is the round trip's business, not a reason to call it missing.
+        bus = BearBus(bus_cfg.port, bus_cfg.baud, reply_timeout_s=PRESENCE_TIMEOUT_S)
     except DriverError as exc:
         report.error = str(exc)
         report.missing = list(bus_cfg.ids)
         return report
+    enabled: list[int] = []
     with bus:
         for device_id in bus_cfg.ids:
             try:
@@ -99,10 +134,26 @@ def check_bear(config: RobotConfig) -> BusReport:
                 report.warnings.append(f"ID {device_id}: {hottest:.0f} C > {TEMPERATURE_WARN_C:.0f} C")
             if values["input_voltage"] < VOLTAGE_WARN_V:
                 report.warnings.append(f"ID {device_id}: input {values['input_voltage']:.1f} V < {VOLTAGE_WARN_V} V")
+            if int(values["torque_enable"]) == 1:
+                enabled.append(device_id)
+        answering = [i for i in bus_cfg.ids if i not in report.missing]
+        if rtt_cycles and answering:
+            if enabled:
+                report.lines.append(f"round trip not measured: ID(s) {_ids(enabled)} read torque_enable 1 (each "
+                                    "packet would feed the watchdog of a motor that is on); disable torque first")
+            else:
+                bus.reply_timeout_s = RTT_REPLY_TIMEOUT_S
+                trips = bear_round_trips(bus, answering, rtt_cycles)
+                _timing_lines(report, trips, verdict_1khz(trips))
+                timeout = getattr(bus_cfg, "reply_timeout_s", 0.0) or 0.002
+                slow = sum(t > timeout for t in trips.seconds)
+                if slow:
+                    report.warnings.append(f"{slow} of {len(trips.seconds)} bulk cycles took longer than the "
+                                           f"{1e3 * timeout:g} ms reply timeout: their replies would be lost in a run")
     return report
 
 
-def check_dynamixel(config: RobotConfig) -> BusReport:
+def check_dynamixel(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
     from drivers.dynamixel import decode_hardware_error, decode_status_error
 
     bus_cfg = config.buses.dynamixel
@@ -140,12 +191,18 @@ def check_dynamixel(config: RobotConfig) -> BusReport:
                                 f"temperature {temperature} C; input {voltage / 10:.1f} V")
             if flags:
                 report.faults.append(f"ID {dxl_id}: {', '.join(flags)}")
+        answering = [i for i in bus_cfg.ids if i not in report.missing]
+        if rtt_cycles and answering:
+            trips = dynamixel_round_trips(port, handler, answering, rtt_cycles)
+            arm, holds = arm_verdict(trips)
+            _timing_lines(report, trips, (f"{arm}; {verdict_1khz(trips)[0]}", holds))
     finally:
         port.closePort()
     return report
 
 
-def check_sense(config: RobotConfig, listen_s: float = 0.2) -> BusReport:
+def check_sense(config: RobotConfig, listen_s: float = 0.2, polls: int = 0) -> BusReport:
+    """`polls` > 0: the stream timed over that many 1 ms polls (which then replace the `listen_s` wait)."""
     from drivers.errors import DriverError
     from drivers.sense import SenseBoard
 
@@ -159,9 +216,14 @@ def check_sense(config: RobotConfig, listen_s: float = 0.2) -> BusReport:
     with board:
         try:
             board.start(check_imu=False)
-            count, t0 = board.sample_count, time.monotonic()
-            time.sleep(listen_s)
-            rate = (board.sample_count - count) / (time.monotonic() - t0)
+            timing = None
+            if polls > 0:
+                timing = sense_stream_timing(board, polls)
+                rate = timing.rate_hz
+            else:
+                count, t0 = board.sample_count, time.monotonic()
+                time.sleep(listen_s)
+                rate = (board.sample_count - count) / (time.monotonic() - t0)
             imu, contacts = board.read()
         except DriverError as exc:
             report.error = str(exc)
@@ -170,6 +232,12 @@ def check_sense(config: RobotConfig, listen_s: float = 0.2) -> BusReport:
         report.lines.append(f"streaming {rate:.0f} samples/s; specific force {_vec(imu.accel)} m/s^2 "
                             f"(|a| {math.sqrt(float(imu.accel @ imu.accel)):.2f}); gyro {_vec(imu.gyro)} rad/s; "
                             f"contacts closed: {', '.join(closed) or 'none'}")
+        if timing is not None:
+            _timing_lines(report, timing, timing.verdict())
+            max_age = getattr(config.safety, "max_sensor_age_s", math.inf)
+            if timing.ages and max(timing.ages) > max_age:
+                report.warnings.append(f"a tick saw data {1e3 * max(timing.ages):.1f} ms old, beyond "
+                                       f"safety.max_sensor_age_s ({1e3 * max_age:g} ms): a run would stop on it")
         stats = board.stats
         if stats.rejected_total:
             report.warnings.append(f"{stats.rejected_total} rejected packets ({dict(stats.rejected)})")
@@ -202,6 +270,145 @@ def check_can(config: RobotConfig) -> BusReport:
                 report.lines.append(f"ID {motor_id} ({slot}): position {state.position[k]:+.3f} rad, velocity "
                                     f"{state.velocity[k]:+.3f} rad/s, torque {state.torque[k]:+.2f} Nm")
     return report
+
+
+# -- round trips (module docstring) ----------------------------------------------------------------------------------
+@dataclass
+class RoundTrips:
+    """Timed exchanges of one bus: seconds each (those that completed), and how many lost a reply."""
+
+    what: str
+    seconds: list[float] = field(default_factory=list)
+    lost: int = 0
+
+    def percentile(self, q: float) -> float:
+        return float(np.percentile(self.seconds, q)) if self.seconds else math.nan
+
+    @property
+    def p50(self) -> float:
+        return self.percentile(50)
+
+    @property
+    def p99(self) -> float:
+        return self.percentile(99)
+
+    def line(self) -> str:
+        """"round trip over 300 read-only bulk cycles of 10 IDs: p50 0.412 ms, p99 0.803 ms, max 1.210 ms"."""
+        head = f"round trip over {len(self.seconds) + self.lost} {self.what}: "
+        if not self.seconds:
+            return head + "no exchange completed"
+        text = head + (f"p50 {1e3 * self.p50:.3f} ms, p99 {1e3 * self.p99:.3f} ms, max {1e3 * max(self.seconds):.3f} "
+                       "ms")
+        return text + (f", {self.lost} lost a reply (not timed)" if self.lost else "")
+
+
+def verdict_1khz(trips: RoundTrips) -> tuple[str, bool]:
+    """(a phrase for people, whether the bus holds 1 kHz without help), by the module docstring's criterion."""
+    if not trips.seconds:
+        return "cannot hold 1 kHz: no exchange completed", False
+    if trips.p99 <= HOLDS_P99_S:
+        return f"holds 1 kHz (p99 <= {1e3 * HOLDS_P99_S:.1f} ms)", True
+    if trips.p50 <= TICK_S:
+        return (f"holds 1 kHz only with late ticks or a bus thread (p99 > {1e3 * HOLDS_P99_S:.1f} ms, p50 <= "
+                f"{1e3 * TICK_S:.1f} ms)"), False
+    rate = 10 * math.floor(1.0 / (trips.p50 + COMPUTE_S) / 10)
+    return (f"cannot hold 1 kHz: expect {rate} Hz (p50 {1e3 * trips.p50:.2f} ms + {1e3 * COMPUTE_S:.1f} ms of work "
+            "per tick)"), False
+
+
+def arm_verdict(trips: RoundTrips) -> tuple[str, bool]:
+    """Whether the arm thread's 50 Hz is safe: p99 within half its period."""
+    budget = 0.5 / ARM_RATE_HZ
+    if trips.seconds and trips.p99 <= budget:
+        return f"holds the arm thread's {ARM_RATE_HZ:.0f} Hz", True
+    return f"cannot hold the arm thread's {ARM_RATE_HZ:.0f} Hz (p99 > {1e3 * budget:.0f} ms)", False
+
+
+def bear_round_trips(bus, ids, cycles: int) -> RoundTrips:
+    """`cycles` read-only bulk cycles of `ids` on an open BearBus, back to back (partial: a lost reply is counted,
+    not timed, and not retried)."""
+    ids = list(ids)
+    trips = RoundTrips(f"read-only bulk cycles of {len(ids)} IDs")
+    for _ in range(cycles):
+        start = time.perf_counter()
+        reply = bus.bulk_cycle(ids, None, partial=True)
+        took = time.perf_counter() - start
+        if reply.answered is not None and not reply.answered.all():
+            trips.lost += 1
+        else:
+            trips.seconds.append(took)
+    return trips
+
+
+def dynamixel_round_trips(port, handler, ids, cycles: int) -> RoundTrips:
+    """`cycles` sync reads of present velocity and position of `ids` through dynamixel-sdk (an open PortHandler,
+    a Protocol 2.0 PacketHandler)."""
+    from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead
+
+    reader = GroupSyncRead(port, handler, DXL_READ_ADDRESS, DXL_READ_LENGTH)
+    for dxl_id in ids:
+        reader.addParam(dxl_id)
+    trips = RoundTrips(f"sync reads of {len(ids)} servos")
+    for _ in range(cycles):
+        start = time.perf_counter()
+        result = reader.txRxPacket()
+        took = time.perf_counter() - start
+        if result == COMM_SUCCESS:
+            trips.seconds.append(took)
+        else:
+            trips.lost += 1
+    return trips
+
+
+@dataclass
+class StreamTiming:
+    """The sense board's stream as a 1 kHz tick sees it: packets over `seconds`, the newest one's age per poll."""
+
+    seconds: float
+    packets: int
+    ages: list[float]
+
+    @property
+    def rate_hz(self) -> float:
+        return self.packets / self.seconds if self.seconds > 0 else 0.0
+
+    def line(self) -> str:
+        interval = f"{1e3 / self.rate_hz:.3f} ms" if self.packets else "none"
+        ages = np.asarray(self.ages) * 1e3
+        return (f"stream over {len(self.ages)} ticks of 1 ms: {self.rate_hz:.0f} packets/s (mean interval {interval}); "
+                f"age of the newest packet at a tick p50 {np.percentile(ages, 50):.3f} ms, p99 "
+                f"{np.percentile(ages, 99):.3f} ms, max {ages.max():.3f} ms")
+
+    def verdict(self) -> tuple[str, bool]:
+        age_p99 = float(np.percentile(self.ages, 99))
+        if self.rate_hz >= SENSE_MIN_RATE_HZ and age_p99 <= SENSE_MAX_AGE_P99_S:
+            return (f"holds 1 kHz (>= {SENSE_MIN_RATE_HZ:.0f} packets/s, age p99 <= {1e3 * SENSE_MAX_AGE_P99_S:.0f} "
+                    "ms)"), True
+        return (f"cannot hold 1 kHz: {self.rate_hz:.0f} packets/s, a tick's data up to {1e3 * age_p99:.1f} ms old "
+                "(p99)"), False
+
+
+def sense_stream_timing(board, polls: int) -> StreamTiming:
+    """Poll a streaming SenseBoard `polls` times, 1 ms apart (sleep, then spin to each deadline): the newest
+    packet's age at each poll, and the packets that came meanwhile."""
+    ages: list[float] = []
+    first = board.sample_count
+    start = deadline = time.monotonic()
+    for _ in range(max(1, polls)):
+        deadline += TICK_S
+        while (now := time.monotonic()) < deadline:
+            if deadline - now > 0.0002:
+                time.sleep(deadline - now - 0.0002)
+        ages.append(board.age(now))
+    return StreamTiming(time.monotonic() - start, board.sample_count - first, ages)
+
+
+def _timing_lines(report: BusReport, timing, verdict: tuple[str, bool]) -> None:
+    """The figures and the verdict as one line of the report; a bus that cannot keep up is a warning too."""
+    text, holds = verdict
+    report.lines.append(f"{timing.line()}: {text}")
+    if not holds and "cannot hold" in text:
+        report.warnings.append(f"round trip: {text}")
 
 
 # -- the BEAR watchdog unit ------------------------------------------------------------------------------------------
@@ -458,9 +665,10 @@ def run_watchdog_probe(config: RobotConfig, device_id: int | None, counts) -> in
     return 0
 
 
-def check(config: RobotConfig) -> list[BusReport]:
-    reports = [check_can(config)] if config.buses.can.motors else [check_bear(config)]
-    return [*reports, check_dynamixel(config), check_sense(config)]
+def check(config: RobotConfig, rtt_cycles: int = 0) -> list[BusReport]:
+    """Every bus's report; `rtt_cycles` > 0 adds the round trips (module docstring)."""
+    reports = [check_can(config)] if config.buses.can.motors else [check_bear(config, rtt_cycles)]
+    return [*reports, check_dynamixel(config, rtt_cycles), check_sense(config, polls=rtt_cycles)]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -468,6 +676,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--config", default=DEFAULT_CONFIG, help="robot config YAML (default: %(default)s)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value by dotted key path, e.g. buses.bear.port=/dev/ttyUSB3 (repeatable)")
+    p.add_argument("--rtt-cycles", default=str(RTT_CYCLES), metavar="N",
+                   help="round trips timed per bus: BEAR bulk cycles, Dynamixel sync reads, 1 ms polls of the sense "
+                        "board (default %(default)s; 0: no timing)")
     p.add_argument("--probe-watchdog", action="store_true",
                    help="instead of the check, measure the BEAR watchdog's unit (seconds per watchdog_timeout count) "
                         "on one BEAR: it is enabled in torque mode with goal current 0 (limp, then damping, "
@@ -478,13 +689,20 @@ def main(argv: list[str] | None = None) -> int:
                    help="the two watchdog_timeout counts timed (default: %(default)s)")
     args = p.parse_args(argv)
     try:
+        rtt_cycles = int(args.rtt_cycles)
+    except ValueError:
+        rtt_cycles = -1
+    if not 0 <= rtt_cycles <= 100_000:
+        print(f"{PROG}: --rtt-cycles: {args.rtt_cycles!r} is not a count in 0..100000", file=sys.stderr)
+        return 2
+    try:
         config = load_config(args.config, args.overrides)
     except ConfigError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2
     if args.probe_watchdog:
         return run_watchdog_probe(config, args.probe_id, args.probe_counts)
-    reports = check(config)
+    reports = check(config, rtt_cycles)
     for report in reports:
         print(report.text())
     problems = [r for r in reports if not r.ok]

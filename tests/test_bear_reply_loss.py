@@ -76,3 +76,18 @@ def test_a_cut_reply_completed_by_the_next_one_is_not_a_sample():
     assert [p.id for p in packets] == [5]  # reply B, and nothing made up for ID 4
     assert struct.unpack("<3f", packets[0].data)[0] == pytest.approx(0.1 + 1e-6 * k)
     assert parser.stats.rejected["truncated"] >= 1
+
+
+def test_a_reply_whose_data_holds_ff_ff_is_a_sample():
+    """present_iq 4.28 A is the float32 bytes ff ff 88 40: a motor at rest sends them every cycle. FF FF that does not
+    start an expected reply (ID, LEN, error byte) is data, not a cut reply."""
+    iq = struct.unpack("<f", b"\xff\xff\x88\x40")[0]
+    replies = _reply(9, 0.25, -0.5, iq) + _reply(10, 0.0, 0.0, iq)
+    assert replies.count(b"\xff\xff") == 4  # two headers, two in the data
+    for pieces in ([replies], [replies[:7], replies[7:19], replies[19:]]):  # at once, or as the wire delivers it
+        parser = StatusParser()
+        parser.expect(reply_length(3), range(1, 11))
+        packets = [p for piece in pieces for p in parser.feed(piece)]
+        assert [p.id for p in packets] == [9, 10]
+    assert [struct.unpack("<3f", p.data)[2] for p in packets] == [iq, iq]
+    assert not parser.stats.rejected_total

@@ -1,5 +1,5 @@
-"""`bruce-emulate`'s fault commands (unplug, plug, loss) on an emulated robot in this process, and its event lines
-from a child process, through EmulatorProcess."""
+"""`bruce-emulate`'s fault commands (unplug, plug, loss, delay) on an emulated robot in this process, and its event
+lines from a child process, through EmulatorProcess."""
 
 from __future__ import annotations
 
@@ -85,6 +85,21 @@ def test_loss_command_sets_the_bear_reply_loss(robot):
     for bad in (["loss", "bear", "2", "0"], ["loss", "dynamixel", "0.1", "0"], ["loss", "bear", "0.1"]):
         with pytest.raises(ValueError):
             execute(robot, bad)
+
+
+def test_delay_command_sets_each_bus_reply_delay(robot):
+    robot.drain_events()
+    assert execute(robot, ["delay", "dynamixel", "0.002", "0.001"]).startswith("ok delay dynamixel 0.002 0.001 t=")
+    assert execute(robot, ["delay", "sense", "0.001"]).startswith("ok delay sense 0.001 t=")
+    assert status(robot)["reply_delay"] == {"bear": [0.0, 0.0], "dynamixel": [0.002, 0.001], "sense": [0.001, 0.0]}
+    assert _texts(robot) == ["dynamixel reply delay 2 ms + U(0, 1 ms)", "sense reply delay 1 ms"]
+    for bad in (["delay", "bear", "-0.001"], ["delay", "bear", "0.5"], ["delay", "bear", "0.001", "nan"],
+                ["delay", "can", "0.001"], ["delay", "bear"], ["delay", "bear", "soon"]):
+        with pytest.raises(ValueError):
+            execute(robot, bad)
+    for bus_name in ("dynamixel", "sense"):
+        execute(robot, ["delay", bus_name, "0"])
+    assert status(robot)["reply_delay"]["sense"] == [0.0, 0.0]
 
 
 def test_robot_events_come_in_time_order(robot):

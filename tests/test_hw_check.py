@@ -1,6 +1,6 @@
-"""`bruce-hw-check --probe-watchdog` against the BEAR emulator (which takes watchdog_timeout in milliseconds), on a
+"""`bruce-hw-check`: `--probe-watchdog` against the BEAR emulator (which takes watchdog_timeout in milliseconds), on a
 pseudo-terminal with no plant: the emulator checks its watchdog when a packet arrives, which is what the probe's
-ping is."""
+ping is; and the default check's round-trip report against `bruce-emulate` (every bus, reply delays from its stdin)."""
 
 from __future__ import annotations
 
@@ -87,3 +87,84 @@ def test_probe_gives_up_on_a_watchdog_that_never_trips(emulator, monkeypatch):
         with pytest.raises(ProbeError, match="did not trip"):
             probe_watchdog(bus, 1, (100, 200), feed_s=0.01, max_wait_s=0.05, say=lambda text: None)
         assert time.monotonic() - start < 3.0
+
+
+# -- round trips (bruce-hw-check's default report) against `bruce-emulate` -------------------------------------------
+RTT_LINE = re.compile(r"round trip over (\d+) (.+?): p50 ([\d.]+) ms, p99 ([\d.]+) ms, max ([\d.]+) ms: (.+)")
+STREAM_LINE = re.compile(r"stream over (\d+) ticks of 1 ms: (\d+) packets/s .*age of the newest packet at a tick p50 "
+                         r"([\d.]+) ms, p99 ([\d.]+) ms, max ([\d.]+) ms: (.+)")
+
+
+@pytest.fixture(scope="module")
+def emulated_robot():
+    from drivers.emulators.cli import EmulatorProcess
+
+    with EmulatorProcess() as emu:
+        yield emu
+
+
+def _check(emulated_robot, capsys, *more: str) -> tuple[int, str]:
+    argv = [a for item in emulated_robot.overrides for a in ("--set", item)]
+    code = main([*argv, *more])
+    return code, capsys.readouterr().out
+
+
+def _round_trips(out: str) -> dict[str, tuple]:
+    """{"bulk cycles" / "sync reads": (count, p50 ms, p99 ms, max ms, verdict)} from the report."""
+    found = {}
+    for match in RTT_LINE.finditer(out):
+        key = "bulk cycles" if "bulk cycles" in match.group(2) else "sync reads"
+        found[key] = (int(match.group(1)), *(float(match.group(k)) for k in (3, 4, 5)), match.group(6))
+    return found
+
+
+def test_the_check_reports_each_bus_round_trip_and_verdict(emulated_robot, capsys):
+    code, out = _check(emulated_robot, capsys, "--rtt-cycles", "200")
+    assert code == 0, out
+    trips = _round_trips(out)
+    assert set(trips) == {"bulk cycles", "sync reads"}, out
+    count, p50, p99, top, verdict = trips["bulk cycles"]
+    assert count == 200 and 0 < p50 <= p99 <= top, out
+    assert "read-only bulk cycles of 10 IDs" in out
+    assert verdict.startswith(("holds 1 kHz", "cannot hold 1 kHz: expect")), verdict  # which depends on the machine
+    assert "arm thread's 50 Hz" in trips["sync reads"][4]
+    stream = STREAM_LINE.search(out)
+    assert stream and int(stream.group(1)) == 200 and int(stream.group(2)) > 500, out
+    assert "OK, every device answers" in out
+
+
+def test_a_bear_reply_delay_changes_the_verdict(emulated_robot, capsys):
+    """2 ms late replies: every bulk cycle takes at least 2 ms, so 1 kHz is out of reach and the check says what to
+    expect; the devices are still all there (a late answer is not a missing device)."""
+    emulated_robot.send("delay bear 0.002")
+    try:
+        code, out = _check(emulated_robot, capsys, "--rtt-cycles", "100")
+    finally:
+        emulated_robot.send("delay bear 0")
+    assert code == 0, out
+    count, p50, p99, top, verdict = _round_trips(out)["bulk cycles"]
+    assert count == 100 and p50 >= 2.0 and p99 >= 2.0, out
+    rate = int(re.match(r"cannot hold 1 kHz: expect (\d+) Hz", verdict).group(1))
+    assert rate <= 1000 / (p50 + 0.2) and rate < 500, verdict
+    assert f"warning: round trip: cannot hold 1 kHz: expect {rate} Hz" in out
+
+
+def test_round_trips_are_skipped_while_a_bear_is_enabled_and_with_zero_cycles(emulated_robot, capsys):
+    port = next(item.split("=", 1)[1] for item in emulated_robot.overrides if item.startswith("buses.bear.port="))
+    with BearBus(port, reply_timeout_s=0.02) as bus:
+        bus.set_torque_enable([3], 1)
+        try:
+            code, out = _check(emulated_robot, capsys, "--rtt-cycles", "20")
+        finally:
+            bus.set_torque_enable([3], 0)
+    assert "round trip not measured: ID(s) 3 read torque_enable 1" in out, out
+    assert "bulk cycles" not in _round_trips(out) and "sync reads" in _round_trips(out)
+    code, out = _check(emulated_robot, capsys, "--rtt-cycles", "0")
+    assert code == 0 and "round trip" not in out and "stream over" not in out, out
+
+
+def test_a_bad_cycle_count_is_one_line(capsys):
+    for value in ("-1", "many", "1000000"):
+        assert main(["--rtt-cycles", value]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("bruce-hw-check: --rtt-cycles: "), err

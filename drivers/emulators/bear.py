@@ -39,19 +39,23 @@ Choices where the sources are silent (documented here because a host can observe
 Faults for tests: `silence(ids)` (those BEARs unplugged), `unplug()` (the bus's wire cut both ways: bytes from the
 host are discarded unread, nothing is answered, every watchdog runs out), `set_error`, `set_estop`,
 `corrupt_next_reply(kind)` (one reply), `set_reply_loss(drop, corrupt, seed)` (every reply independently dropped or
-corrupted, counted by kind in `reply_losses`), `power_cycle`.
+corrupted, counted by kind in `reply_losses`), `set_reply_delay(fixed, jitter, seed)` (every answer starts fixed +
+U(0, jitter) s after its request arrived, an honest wall-clock wait on the pty thread; a BULK_COMM's replies are
+delayed as a whole: the first one starts late, the others follow it at once), `power_cycle`.
 
 Event log: `drain_events()` returns `(time.monotonic() stamp, text)` pairs of what happened since the last drain,
 stamped when it happened (a watchdog expiry: when detected). Logged: every change of a BEAR's torque_enable as read,
 with its cause (`bear 3 torque_enable 1 -> 3 (watchdog: 51.2 ms without a packet)`, `(host write)`,
 `(e-stop input)`, `(fault: joint_limit)`, `(fault cleared)`, `(<register> set)`, `(power cycle)`); a watchdog_timeout
 value taking effect (`bear 3 watchdog_timeout 50`); a config write ignored because torque is enabled
-(`bear 3 config write ignored (torque_enable 1)`); `bear unplug` / `bear plug`; `bear reply loss drop P corrupt P`.
+(`bear 3 config write ignored (torque_enable 1)`); `bear unplug` / `bear plug`; `bear reply loss drop P corrupt P`;
+`bear reply delay 3 ms + U(0, 1 ms)`.
 "bear" is the emulator's `name`. At most 10,000 events wait; older ones are dropped (counted in `events_dropped`).
 """
 
 from __future__ import annotations
 
+import functools
 import random
 import struct
 import threading
@@ -83,10 +87,22 @@ from drivers.bear import (
     error_flags,
 )
 from drivers.emulators.pty_device import PtyDevice
+from drivers.emulators.reply_delay import ReplyDelay
 from drivers.errors import LinkStats
 from drivers.framing import skip_to_header
 
 STALE_RX_S = 0.02
+# Plain ints for the hot path (IntFlag arithmetic builds enum members: tens of microseconds per bulk cycle).
+_COMM, _OVERHEAT, _ESTOP = int(BearError.COMMUNICATION), int(BearError.OVERHEAT), int(BearError.WATCHDOG_ESTOP)
+_JOINT_LIMIT, _HARDWARE = int(BearError.JOINT_LIMIT), int(BearError.HARDWARE)
+_FAULTS, _WARNINGS = int(FAULT_BITS), int(WARNING_BITS)
+_FAULTS_BUT_ESTOP = _FAULTS & ~_ESTOP
+_DISABLED, _ENABLED, _ERROR, _DAMPING = (int(t) for t in (TorqueEnable.DISABLED, TorqueEnable.ENABLED,
+                                                          TorqueEnable.ERROR, TorqueEnable.DAMPING))
+_DERIVED = ("torque_enable", "error_status", "warning_status")  # status registers that follow the device state
+# Writable status registers by address: (name, unpacker).
+_STATUS_WRITES = {r.address: (r.name, struct.Struct("<" + r.fmt)) for r in STATUS_BY_ADDRESS.values() if r.writable}
+_INSTRUCTION_NAMES = {int(i): i.name for i in Instruction}
 CORRUPTIONS = ("checksum", "truncate", "garbage", "foreign", "drop")
 LOSS_CORRUPTIONS = ("checksum", "truncate", "garbage")  # what set_reply_loss's `corrupt` does, drawn evenly
 MAX_EVENTS = 10_000
@@ -179,60 +195,66 @@ class _Bear:
         c, s = self.config, self.status
         error = ERROR_OK | self.latched
         if self.comm_warning:
-            error |= BearError.COMMUNICATION
+            error |= _COMM
         if self.estop or self.damping:
-            error |= BearError.WATCHDOG_ESTOP
+            error |= _ESTOP
         if max(s["winding_temperature"], s["powerstage_temperature"], s["ic_temperature"]) > c["temp_limit_low"]:
-            error |= BearError.OVERHEAT
+            error |= _OVERHEAT
         if not c["min_voltage"] <= s["input_voltage"] <= c["max_voltage"]:
-            error |= BearError.HARDWARE
+            error |= _HARDWARE
         low, high = c["limit_position_min"], c["limit_position_max"]
         if low < high and not low <= s["present_position"] <= high:
-            error |= BearError.JOINT_LIMIT
-        return int(error)
+            error |= _JOINT_LIMIT
+        return error
 
-    def torque_enable(self) -> int:
+    def torque_enable(self, error: int | None = None) -> int:
+        """As read; `error`: the error byte if the caller has it already (it is not computed again)."""
         if self.estop or self.damping:
-            return TorqueEnable.DAMPING
-        if self.enable == TorqueEnable.ENABLED and self.error_byte() & FAULT_BITS & ~BearError.WATCHDOG_ESTOP:
-            return TorqueEnable.ERROR
+            return _DAMPING
+        if self.enable == _ENABLED and (self.error_byte() if error is None else error) & _FAULTS_BUT_ESTOP:
+            return _ERROR
         return self.enable
 
     def value(self, register: Register) -> int | float:
         if register.table == "config":
             return self.config[register.name]
-        if register.name == "torque_enable":
-            return self.torque_enable()
-        if register.name == "error_status":
-            return self.error_byte() & FAULT_BITS
-        if register.name == "warning_status":
-            return self.error_byte() & WARNING_BITS
-        return self.status[register.name]
+        return self._status_value(register.name)
 
-    def read(self, by_address: dict[int, Register], addresses: bytes) -> bytes:
-        data = bytearray()
-        for address in addresses:
-            register = by_address.get(address)
-            if register is None:
-                self.comm_warning = True
-                data += bytes(4)
-            else:
-                data += struct.pack("<" + register.fmt, self.value(register))
-        return bytes(data)
+    def _status_value(self, name: str) -> int | float:
+        if name == "torque_enable":
+            return self.torque_enable()
+        if name == "error_status":
+            return self.error_byte() & _FAULTS
+        if name == "warning_status":
+            return self.error_byte() & _WARNINGS
+        return self.status[name]
+
+    def read(self, table: str, addresses: bytes) -> bytes:
+        """The registers at these addresses of one table ("status" or "config"), packed as the wire has them."""
+        packer, names, unknown = _read_plan(table, bytes(addresses))
+        if unknown:
+            self.comm_warning = True
+        if table == "config":
+            files = self.config
+            return packer.pack(*[0 if name is None else files[name] for name in names])
+        files = self.status
+        return packer.pack(*[0 if name is None else self._status_value(name) if name in _DERIVED else files[name]
+                             for name in names])
 
     def write_status(self, address: int, raw: bytes) -> None:
-        register = STATUS_BY_ADDRESS.get(address)
-        if register is None or not register.writable:
+        entry = _STATUS_WRITES.get(address)
+        if entry is None:
             self.comm_warning = True
             return
-        value = struct.unpack("<" + register.fmt, raw)[0]
-        if register.name != "torque_enable":
-            self.status[register.name] = value
-        elif value == TorqueEnable.DISABLED:
+        name, unpacker = entry
+        value = unpacker.unpack(raw)[0]
+        if name != "torque_enable":
+            self.status[name] = value
+        elif value == _DISABLED:
             self.enable, self.damping, self.latched = 0, False, 0
-        elif value == TorqueEnable.ENABLED:
+        elif value == _ENABLED:
             self.enable, self.damping = 1, False
-        elif value == TorqueEnable.DAMPING:
+        elif value == _DAMPING:
             self.damping = True
         else:  # 2 is only ever read; a float-encoded 1.0 (0x3F800000) lands here too
             self.comm_warning = True
@@ -260,16 +282,26 @@ class _Bear:
     def check_watchdog(self, now: float) -> float | None:
         """Damping if the watchdog ran out; returns how long the BEAR went without a packet when it trips now."""
         timeout_ms = self.config["watchdog_timeout"]
-        if (timeout_ms and self.config["mode"] == 0 and self.torque_enable() == TorqueEnable.ENABLED
-                and now - self.last_rx > timeout_ms / 1000.0):
+        if (timeout_ms and now - self.last_rx > timeout_ms / 1000.0 and self.config["mode"] == 0
+                and self.torque_enable() == _ENABLED):
             self.damping = True
             return now - self.last_rx
         return None
 
     def fault_cause(self) -> str:
         """Why torque_enable moved between 1 and 2 by itself: the fault bits now set (E-stop / damping aside)."""
-        flags = error_flags(self.error_byte() & FAULT_BITS & ~BearError.WATCHDOG_ESTOP)
+        flags = error_flags(self.error_byte() & _FAULTS_BUT_ESTOP)
         return f"fault: {', '.join(flags)}" if flags else "fault cleared"
+
+
+@functools.lru_cache(maxsize=512)
+def _read_plan(table: str, addresses: bytes) -> tuple[struct.Struct, tuple[str | None, ...], bool]:
+    """How to answer a read of these addresses: one packer for all values, the register names (None: unknown
+    address, read as 4 zero bytes), whether any is unknown. Cached: a host asks the same reads every tick."""
+    by_address = CONFIG_BY_ADDRESS if table == "config" else STATUS_BY_ADDRESS
+    registers = [by_address.get(address) for address in addresses]
+    fmt = "<" + "".join("I" if r is None else r.fmt for r in registers)
+    return struct.Struct(fmt), tuple(None if r is None else r.name for r in registers), None in registers
 
 
 class BearBusEmulator:
@@ -301,6 +333,7 @@ class BearBusEmulator:
         self._loss: tuple[float, float, random.Random] | None = None  # (drop, corrupt, generator)
         self.replies = 0  # reply packets the BEARs produced, spoiled or dropped ones included
         self.reply_losses: Counter[str] = Counter()  # set_reply_loss: "drop", "checksum", "truncate", "garbage"
+        self.reply_delay = ReplyDelay()  # set_reply_delay: how late the answers start
 
     # -- lifecycle --
     def start(self) -> BearBusEmulator:
@@ -363,6 +396,13 @@ class BearBusEmulator:
             self._loss = (drop, corrupt, random.Random(seed)) if drop or corrupt else None
             self._events.add(f"{self.name} reply loss drop {drop:g} corrupt {corrupt:g}")
 
+    def set_reply_delay(self, fixed: float, jitter: float = 0.0, seed: int | str | None = None) -> None:
+        """From now on every answer starts fixed + U(0, jitter) seconds after the bytes that asked for it arrived
+        (a BULK_COMM's replies as a whole: the first is delayed, the others follow it at once, as they do without
+        a delay). ValueError for a value outside [0, 0.1] s; `seed` makes the draws repeatable."""
+        self.reply_delay.set(fixed, jitter, seed)
+        self._events.add(f"{self.name} reply delay {self.reply_delay.text()}")
+
     def set_error(self, device_id: int, bit: int | BearError, on: bool = True) -> None:
         """Raise (or drop) an error bit: a bit number 0-6 or a BearError. Bit 3 is the E-stop input (held until
         dropped); bit 0 is reported once; the others latch until torque_enable = 0 is written."""
@@ -373,7 +413,7 @@ class BearBusEmulator:
                 bear.estop = on
             if mask & BearError.COMMUNICATION:
                 bear.comm_warning = on
-            rest = mask & ~(BearError.WATCHDOG_ESTOP | BearError.COMMUNICATION) & 0x7F
+            rest = int(mask & ~(_ESTOP | _COMM) & 0x7F)
             bear.latched = bear.latched | rest if on else bear.latched & ~rest
             cause = "e-stop input" if mask & BearError.WATCHDOG_ESTOP else \
                 f"injected {', '.join(error_flags(rest)) or 'nothing'}"
@@ -404,10 +444,16 @@ class BearBusEmulator:
                 self._track(bear, time.monotonic(), bear.fault_cause())
 
     def set_measured_many(self, ids: Sequence[int], positions, velocities, iqs) -> None:
+        # Rounded to float32 in one go (what _f32 does one value at a time): the physics calls this every step.
+        columns = [np.asarray(v, dtype=np.float32).astype(np.float64).tolist()
+                   for v in (positions, velocities, iqs)]
         with self._lock:
-            for device_id, p, v, i in zip(ids, np.asarray(positions, float), np.asarray(velocities, float),
-                                          np.asarray(iqs, float), strict=True):
-                self.set_measured(device_id, float(p), float(v), float(i))
+            for device_id, p, v, i in zip(ids, *columns, strict=True):
+                bear = self._bears[device_id]
+                status = bear.status
+                status["present_position"], status["present_velocity"], status["present_iq"] = p, v, i
+                if bear.enable and bear.torque_enable() != bear.logged_enable:  # a joint limit crossed while enabled
+                    self._track(bear, time.monotonic(), bear.fault_cause())
 
     def command(self, device_id: int) -> MotorCommand:
         with self._lock:
@@ -419,15 +465,23 @@ class BearBusEmulator:
 
     def commands(self, ids: Sequence[int] | None = None) -> dict[str, np.ndarray]:
         """Arrays in `ids` order (default: sorted IDs): mode, torque_enable, goal_position, goal_velocity,
-        goal_iq, goal_id, error."""
+        goal_iq, goal_id, error. What `command` gives per ID, in one pass (the physics calls it every step)."""
         with self._lock:
-            rows = [self.command(i) for i in (self.ids if ids is None else ids)]
-        out = {name: np.array([getattr(r, name) for r in rows], dtype=np.float64)
-               for name in ("goal_position", "goal_velocity", "goal_iq", "goal_id")}
-        for name in ("mode", "torque_enable"):
-            out[name] = np.array([getattr(r, name) for r in rows], dtype=np.int64)
-        out["error"] = np.array([r.error for r in rows], dtype=np.uint8)
-        return out
+            now = time.monotonic()
+            rows = []
+            for device_id in (self.ids if ids is None else ids):
+                bear = self._bears[device_id]
+                self._check_watchdog(bear, now)
+                s = bear.status
+                error = bear.error_byte()
+                rows.append((bear.config["mode"], bear.torque_enable(error), s["goal_position"], s["goal_velocity"],
+                             s["goal_iq"], s["goal_id"], error))
+        mode, enable, position, velocity, iq, i_d, error = zip(*rows, strict=True) if rows else ((),) * 7
+        return {"goal_position": np.array(position, dtype=np.float64),
+                "goal_velocity": np.array(velocity, dtype=np.float64),
+                "goal_iq": np.array(iq, dtype=np.float64), "goal_id": np.array(i_d, dtype=np.float64),
+                "mode": np.array(mode, dtype=np.int64), "torque_enable": np.array(enable, dtype=np.int64),
+                "error": np.array(error, dtype=np.uint8)}
 
     def register_value(self, device_id: int, name: str, table: str = "status") -> int | float:
         """A register as the bus would read it."""
@@ -494,12 +548,16 @@ class BearBusEmulator:
 
     # -- the wire --
     def _on_bytes(self, data: bytes) -> None:
+        arrived = time.monotonic()
         with self._lock:
             reply = self.handle(data)
-            if reply and self._pty is not None:
-                self._pty.send(reply)
-            if self._bulk_seen and self.on_bulk is not None:
-                self._bulk_seen = False
+            bulk, self._bulk_seen = self._bulk_seen, False
+        # Answered outside the lock: a reply delay (and the write) holds up neither the physics nor a command.
+        if reply and self._pty is not None:
+            self.reply_delay.wait(arrived)
+            self._pty.send(reply)
+        if bulk and self.on_bulk is not None:
+            with self._lock:
                 self.on_bulk()
 
     def check_watchdogs(self) -> None:
@@ -559,11 +617,9 @@ class BearBusEmulator:
     def _execute(self, device_id: int, code: int, params: bytes, now: float) -> bytes:
         if code & 0x80:
             return b""  # another device's status packet on the bus: not an instruction
-        try:
-            instruction = Instruction(code)
-        except ValueError:
-            instruction = None
-        self.requests[instruction.name if instruction else f"0x{code:02X}"] += 1
+        name = _INSTRUCTION_NAMES.get(code)
+        instruction = None if name is None else Instruction(code)
+        self.requests[name or f"0x{code:02X}"] += 1
         if instruction is Instruction.BULK_COMM:
             return self._bulk(params, now) if device_id == BROADCAST_ID else b""
         if device_id == BROADCAST_ID:
@@ -578,9 +634,9 @@ class BearBusEmulator:
             if instruction is Instruction.PING and not params:
                 data = self.ping_data
             elif instruction is Instruction.READ_STAT and 4 * len(params) <= MAX_PARAMS:
-                data = bear.read(STATUS_BY_ADDRESS, params)
+                data = bear.read("status", params)
             elif instruction is Instruction.READ_CFG and 4 * len(params) <= MAX_PARAMS:
-                data = bear.read(CONFIG_BY_ADDRESS, params)
+                data = bear.read("config", params)
             elif instruction in (Instruction.WRITE_STAT, Instruction.WRITE_CFG) and params and len(params) % 5 == 0:
                 pairs = [(params[k], params[k + 1:k + 5]) for k in range(0, len(params), 5)]
                 if instruction is Instruction.WRITE_STAT:
@@ -608,25 +664,24 @@ class BearBusEmulator:
         if len(params) != head + n_motors * stride:
             self.stats.reject("bulk_length")
             return b""
-        reads, writes = params[2:2 + n_read], params[2 + n_read:head]
+        reads, writes = bytes(params[2:2 + n_read]), params[2 + n_read:head]
+        tracked = STATUS_REGISTERS["torque_enable"].address in writes
         listed = []
         self._bulk_seen = True
-        for k in range(n_motors):
-            entry = params[head + k * stride:head + (k + 1) * stride]
-            bear = self._bears.get(entry[0])
+        bears = self._bears
+        for k in range(head, head + n_motors * stride, stride):
+            bear = bears.get(params[k])
             if bear is None or bear.silent:
                 continue
             bear.last_rx = now
             for j, address in enumerate(writes):
-                bear.write_status(address, entry[1 + 4 * j:5 + 4 * j])
-            if writes:
+                bear.write_status(address, params[k + 1 + 4 * j:k + 5 + 4 * j])
+            if tracked:  # only a torque_enable write changes torque_enable (goals do not): logged if it did
                 self._track(bear, now, "host write")
             listed.append(bear)
-        out = bytearray()
-        if n_read:
-            for bear in listed:
-                out += self._reply(bear, bear.read(STATUS_BY_ADDRESS, reads))
-        return bytes(out)
+        if not n_read:
+            return b""
+        return b"".join([self._reply(bear, bear.read("status", reads)) for bear in listed])
 
     def _write_config(self, bear: _Bear, pairs: list[tuple[int, bytes]], now: float) -> None:
         before = bear.torque_enable()
@@ -639,7 +694,7 @@ class BearBusEmulator:
         self._track(bear, now, "host config write")  # limits and voltages move the fault bits
 
     def _reply(self, bear: _Bear, data: bytes) -> bytes:
-        packet = encode_status(bear.id, bear.error_byte(), data)
+        packet = _status_packet(bear.id, bear.error_byte(), data)
         bear.comm_warning = False  # reported: the warning resets
         self.replies += 1
         for k, (kind, target) in enumerate(self._corruptions):
@@ -661,6 +716,12 @@ class BearBusEmulator:
     def _rekey(self) -> None:
         if any(bear.id != key for key, bear in self._bears.items()):
             self._bears = {bear.id: bear for bear in self._bears.values()}
+
+
+def _status_packet(device_id: int, error: int, data: bytes) -> bytes:
+    """drivers.bear.encode_status without its checks (the emulator's IDs and data are valid): every reply."""
+    body = bytes((device_id, len(data) + 2, error)) + data
+    return HEADER + body + bytes((~sum(body) & 0xFF,))
 
 
 def _spoil(packet: bytes, kind: str) -> bytes:

@@ -14,16 +14,29 @@ one line on its standard output, "ok ..." with the monotonic time it took effect
   plug bear|dynamixel|sense          mend it (Dynamixel: every servo answers again, as `answer` with all IDs)
   loss bear DROP CORRUPT [SEED]      from now on each BEAR reply is dropped with probability DROP or corrupted
                                      (bad checksum, truncated, garbage, drawn evenly) with probability CORRUPT
+  delay bear|dynamixel|sense FIXED [JITTER]
+                                     from now on the bus answers FIXED + U(0, JITTER) seconds late (each at most
+                                     0.1 s; JITTER defaults to 0), as --bear-delay and --bear-jitter do
   estop on|off                       the E-stop input of every BEAR (error bit 3, damping)
   imu stop|start                     the sense board stops (resumes) streaming
   place                              put the robot back on its feet, held until a leg actuator is enabled
-  status                             one JSON line: actuator modes and enables, arms, sense board, physics, loss
+  status                             one JSON line: actuator modes and enables, arms, sense board, physics, loss,
+                                     reply delays
 
 Events: every emulator event (the BEAR emulator's: each change of a BEAR's torque_enable with its cause, watchdog
-expiries, watchdog_timeout values taking effect, unplug / plug, loss settings; see drivers/emulators/bear.py; and
-those of the other emulators that keep a log) is printed as it happens as one line `event t=<monotonic> <text>`,
+expiries, watchdog_timeout values taking effect, unplug / plug, loss and delay settings; see
+drivers/emulators/bear.py; those of the other emulators that keep a log; the robot's own: unplug / plug and reply
+delays of the Dynamixel bus and the sense board) is printed as it happens as one line `event t=<monotonic> <text>`,
 stamped with the emulator's time.monotonic() when it happened (the system's clock, shared by every process), not
 when printed. `EmulatorProcess.events()` parses them.
+
+Reply delays (--bear-delay/--bear-jitter, --dxl-delay/--dxl-jitter, --sense-delay/--sense-jitter, or `delay`), to
+try a host's timing policy on purpose: a BEAR or Dynamixel answer starts FIXED + U(0, JITTER) s after the request
+arrived (a BEAR bulk cycle's replies as a whole: the first starts late, the others follow it at once, as they do
+without a delay); each sense-board packet leaves that much later than it would have, at the same rate. The waits are
+honest wall-clock waits (sleep, then spin) on each bus's own thread, so one slow bus slows no other, nor the physics;
+with --lockstep the physics still steps once per bulk cycle, after the replies are out. The jitter draws are seeded
+by --loss-seed when given.
 
 --realtime runs the emulators at SCHED_FIFO 40 on every CPU but the last (bruce-run's loop takes that one), as
 devices with their own clocks; on a loaded machine it keeps their replies within the BEAR's 2 ms timeout.
@@ -48,14 +61,20 @@ import threading
 import time
 
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
+from drivers.emulators.reply_delay import MAX_DELAY_S, check_delay
 
 PROG = "bruce-emulate"
 # The emulators' threads (pty servers, sense-board firmware, plant) answer within a fraction of a millisecond only
-# if none of them can hold the GIL for CPython's default 5 ms.
-SWITCH_INTERVAL_S = 0.0005
+# if none of them can hold the GIL for long (CPython's default: 5 ms). A pty thread woken by a request waits for the
+# GIL up to this long while another thread computes: at 0.5 ms the BEAR bulk cycle's p99 was 1-6 ms on a 2-core VM,
+# at 0.1 ms 0.5-0.6 ms (bench/bench_bear_rtt.py).
+SWITCH_INTERVAL_S = 0.0001
 EMULATOR_PRIORITY = 40  # SCHED_FIFO priority with --realtime: below bruce-run's control loop (50)
 EVENT_POLL_S = 0.002  # how often the emulators' event logs are drained and printed
 _print_lock = threading.Lock()  # event lines and command replies come from two threads: whole lines only
+# (bus as the `delay` command names it, option prefix, what is delayed)
+DELAY_OPTIONS = (("bear", "bear", "BEAR answer"), ("dynamixel", "dxl", "Dynamixel answer"),
+                 ("sense", "sense", "sense-board packet"))
 
 
 def _say(text: str) -> None:
@@ -97,11 +116,28 @@ def build_parser() -> argparse.ArgumentParser:
                    help="corrupt each BEAR reply with probability P: bad checksum, truncated or garbage before it, "
                         "drawn evenly (default %(default)s)")
     p.add_argument("--loss-seed", type=int, default=None, metavar="N",
-                   help="seed of the reply-loss draws, for a repeatable run (default: random)")
+                   help="seed of the reply-loss and reply-jitter draws, for a repeatable run (default: random)")
+    for _, option, what in DELAY_OPTIONS:
+        p.add_argument(f"--{option}-delay", default="0", metavar="S",
+                       help=f"every {what} starts S seconds late (at most {MAX_DELAY_S:g}; default 0)")
+        p.add_argument(f"--{option}-jitter", default="0", metavar="S",
+                       help=f"and a further uniform random 0..S seconds (at most {MAX_DELAY_S:g}; default 0)")
     p.add_argument("--run", nargs=argparse.REMAINDER, default=None, metavar="BRUCE_RUN_ARGS",
                    help="run `bruce-run --backend hw` against the emulators inside this process with these "
                         "options (the rest of the command line), then stop; needed for CAN configs")
     return p
+
+
+def _delays(args: argparse.Namespace) -> dict[str, tuple[float, float]]:
+    """{bus: (fixed, jitter)} of the buses given a reply delay; ValueError (one line naming the option) for a value
+    that is not a number of seconds in [0, MAX_DELAY_S]."""
+    out = {}
+    for bus, option, _ in DELAY_OPTIONS:
+        fixed = check_delay(getattr(args, f"{option}_delay"), f"--{option}-delay")
+        jitter = check_delay(getattr(args, f"{option}_jitter"), f"--{option}-jitter")
+        if fixed or jitter:
+            out[bus] = (fixed, jitter)
+    return out
 
 
 def bruce_run_args(args: argparse.Namespace, robot) -> list[str]:
@@ -118,6 +154,11 @@ def main(argv: list[str] | None = None) -> int:
     from drivers.emulators.plant import EmulatedRobot
 
     args = build_parser().parse_args(argv)
+    try:
+        delays = _delays(args)
+    except ValueError as exc:
+        print(f"{PROG}: {exc}", file=sys.stderr)
+        return 2
     try:
         config = load_config(args.config, args.overrides)
     except ConfigError as exc:
@@ -147,6 +188,13 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{PROG}: --bear-drop / --bear-corrupt need a BEAR bus; this config has CAN legs", file=sys.stderr)
             return 2
         robot.bear.set_reply_loss(args.bear_drop, args.bear_corrupt, args.loss_seed)
+    for bus, (fixed, jitter) in delays.items():
+        if robot.bear is None and bus == "bear":
+            robot.close()
+            print(f"{PROG}: --bear-delay / --bear-jitter need a BEAR bus; this config has CAN legs", file=sys.stderr)
+            return 2
+        seed = None if args.loss_seed is None else f"{args.loss_seed}/{bus}"
+        robot.set_reply_delay(bus, fixed, jitter, seed)
     # Started after `restore()`: printing is no device's work, it runs at normal priority.
     printer = _EventPrinter(robot)
     # Everything allocated so far (MuJoCo, numpy, the emulators) out of the collector's reach: a full collection
@@ -171,8 +219,8 @@ def main(argv: list[str] | None = None) -> int:
                   "--set buses.can.timeout_s=0.005; 1 kHz needs --can-interface socketcan on vcan channels)")
         print("run the robot stack against it with:")
         print(f"  bruce-run {shlex.join(run_args)}")
-        print("Ctrl-C stops the emulators; fault commands on stdin (silence, answer, unplug, plug, loss, estop, imu, "
-              "place, status).", flush=True)
+        print("Ctrl-C stops the emulators; fault commands on stdin (silence, answer, unplug, plug, loss, delay, estop, "
+              "imu, place, status).", flush=True)
         printer.start()
         _serve(robot, args.duration)
         return 0
@@ -290,6 +338,11 @@ def execute(robot, words: list[str]) -> str:
         if robot.bear is None:
             raise ValueError("no emulated BEAR bus (this config has CAN legs)")
         robot.bear.set_reply_loss(float(rest[1]), float(rest[2]), int(rest[3]) if len(rest) == 4 else None)
+    elif verb == "delay":
+        if len(rest) not in (2, 3) or rest[0] not in ("bear", "dynamixel", "sense"):
+            raise ValueError("delay bear|dynamixel|sense FIXED [JITTER] (seconds)")
+        robot.set_reply_delay(rest[0], check_delay(rest[1], "FIXED"),
+                              check_delay(rest[2], "JITTER") if len(rest) == 3 else 0.0)
     elif verb == "estop" and rest[0] in ("on", "off") and robot.bear is not None:
         robot.bear.set_estop(rest[0] == "on")
     elif verb == "imu" and rest[0] in ("stop", "start"):
@@ -299,8 +352,8 @@ def execute(robot, words: list[str]) -> str:
     elif verb == "status":
         return "status " + json.dumps(status(robot))
     else:
-        raise ValueError("unknown command (silence, answer, unplug, plug, loss, estop on|off, imu stop|start, place, "
-                         "status)")
+        raise ValueError("unknown command (silence, answer, unplug, plug, loss, delay, estop on|off, imu stop|start, "
+                         "place, status)")
     return f"ok {' '.join(words)} t={time.monotonic():.6f}"
 
 
@@ -322,6 +375,7 @@ def status(robot) -> dict:
                        "bulk_comm": robot.bear.requests["BULK_COMM"], "replies": robot.bear.replies,
                        "reply_losses": dict(robot.bear.reply_losses)}
     out["unplugged"] = sorted(getattr(robot, "unplugged", ()))
+    out["reply_delay"] = robot.reply_delays()  # {bus: [fixed, jitter]} in seconds
     for channel, emulator in robot.can.items():
         out.setdefault("can", {})[channel] = {
             "ids": list(emulator.motor_ids), "motor_mode": [emulator.in_motor_mode(i) for i in emulator.motor_ids],
@@ -348,12 +402,17 @@ class EmulatorProcess:
     its stdin fault commands (`send` waits for the reply line, `post` does not), and its event log (`events()`,
     `wait_event()`)."""
 
-    def __init__(self, *args: str, start_timeout_s: float = 60.0):
+    def __init__(self, *args: str, start_timeout_s: float = 60.0, cwd: str | None = None):
+        """`cwd`: run the emulator of the checkout there (benchmarks compare versions); default this one."""
         import queue
         import subprocess
 
+        env = None
+        if cwd is not None:
+            env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [cwd, os.environ.get("PYTHONPATH")])))
         self.proc = subprocess.Popen([sys.executable, "-m", "drivers.emulators.cli", *args], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
+                                     cwd=cwd, env=env)
         self.lines: queue.Queue[str] = queue.Queue()
         self.output: list[str] = []
         self._events: list[tuple[float, str]] = []

@@ -24,7 +24,8 @@ Choices where the sources are silent (BRUCE's exact model is not stated anywhere
 * A packet with a bad CRC addressed to one of our IDs is answered with CRC Error; a partial packet is dropped when
   no byte arrives for `frame_gap_s` (an inter-byte timeout).
 * SYNC_READ / BULK_READ replies follow the order of the request; a silent servo is skipped and the others still
-  answer. Replies are immediate (Return Delay Time is stored, not waited). Baud rate writes are stored, not applied.
+  answer. Return Delay Time is stored, not waited; `set_reply_delay(fixed, jitter)` delays every answer instead (an
+  honest wall-clock wait on the pty thread, from the request's arrival). Baud rate writes are stored, not applied.
 * Without a physics adapter (`track_goals=True`) present position jumps to the goal while torque is on, so the bus
   behaves as ideal servos; a physics adapter constructs with `track_goals=False` and writes present values itself.
 
@@ -114,6 +115,7 @@ from drivers.dynamixel import (
     joint_velocity_to_counts,
 )
 from drivers.emulators.pty_device import PtyDevice
+from drivers.emulators.reply_delay import ReplyDelay
 from drivers.errors import LinkStats
 
 XM430_W350 = 1020
@@ -451,6 +453,7 @@ class DynamixelBusEmulator:
         self._events: deque[tuple[float, str]] = deque(maxlen=MAX_EVENTS)
         self.events_dropped = 0            # events pushed out of the full log, oldest first
         self._pty: PtyDevice | None = None
+        self.reply_delay = ReplyDelay()   # set_reply_delay: how late the answers start
 
     # -- transport ---------------------------------------------------------------------------------------------
     def start(self) -> DynamixelBusEmulator:
@@ -482,7 +485,13 @@ class DynamixelBusEmulator:
             self._last_rx = now
         reply = self.handle(data)
         if reply and self._pty is not None:
+            self.reply_delay.wait(now)  # outside the lock: the physics' accessors go on meanwhile
             self._pty.send(reply)
+
+    def set_reply_delay(self, fixed: float, jitter: float = 0.0, seed: int | str | None = None) -> None:
+        """From now on every answer starts fixed + U(0, jitter) seconds after the bytes that asked for it arrived
+        (a SYNC_READ's status packets as a whole). ValueError outside [0, 0.1] s; `seed` makes draws repeatable."""
+        self.reply_delay.set(fixed, jitter, seed)
 
     def handle(self, data: bytes) -> bytes:
         """Bytes from the host -> the bytes the servos answer (the pty thread calls this; tests may call it too)."""
@@ -712,12 +721,15 @@ class DynamixelBusEmulator:
         qd = np.zeros_like(q) if qd is None else np.asarray(qd, dtype=np.float64)
         if q.shape != (len(self.ids),) or qd.shape != q.shape:
             raise ValueError(f"expected {len(self.ids)} joint values, got {q.shape} and {qd.shape}")
-        positions = self.signs * q + math.pi
-        velocities = self.signs * qd
+        # What set_present(..., unit="rad") does per servo, for all at once (the physics calls this at 50 Hz).
+        positions = np.rint((self.signs * q + math.pi) / POSITION_UNIT).astype(np.int64).tolist()
+        velocities = joint_velocity_to_counts(self.signs * qd, np.ones(len(self.ids))).tolist()
         with self._lock:
             self._tick()
             for dxl_id, position, velocity in zip(self.ids, positions, velocities, strict=True):
-                self.set_present(dxl_id, position, velocity, unit="rad")
+                servo = self._by_id(dxl_id)
+                servo._put("present_position", position)
+                servo._put("present_velocity", velocity)
 
     def goal_position(self, dxl_id: int, unit: str = "counts") -> float:
         with self._lock:

@@ -29,8 +29,9 @@ Choices (the emulators leave these to the adapter):
 
 `EmulatedRobot` starts the emulators a config describes (BEAR or CAN legs, Dynamixel arms, sense board) with a
 plant driving them; `bruce-emulate` (drivers/emulators/cli.py) is its command line. `EmulatedRobot.unplug(bus)`
-cuts a bus's wire, and `EmulatedRobot.drain_events()` merges every emulator's event log (those that have one) with
-its own (unplug / plug of the Dynamixel bus and the sense board), in time order.
+cuts a bus's wire, `EmulatedRobot.set_reply_delay(bus, fixed, jitter)` makes a bus answer late, and
+`EmulatedRobot.drain_events()` merges every emulator's event log (those that have one) with its own (unplug / plug
+and reply delays of the Dynamixel bus and the sense board), in time order.
 """
 
 from __future__ import annotations
@@ -197,15 +198,24 @@ class Plant:
         c = self.bear.commands(self.bear_ids)
         r = self._registers
         m, md = self._m, self._md
-        limit = self.kt * r["limit_i_max"]
         mode, on = c["mode"], c["torque_enable"]
         tau = np.zeros(self.n)
-        tau = np.where(mode == 0, self.kt * c["goal_iq"], tau)
-        tau = np.where(mode == 3, r["p_gain_force"] * (c["goal_position"] - m)
-                       + r["d_gain_force"] * (c["goal_velocity"] - md) + self.kt * c["goal_iq"], tau)
-        tau = np.where(mode == 2, r["p_gain_position"] * (c["goal_position"] - m) - r["d_gain_position"] * md, tau)
-        tau = np.where(mode == 1, r["p_gain_velocity"] * (c["goal_velocity"] - md), tau)
-        tau = np.nan_to_num(np.clip(tau, -limit, limit))
+        for value in set(mode.tolist()):  # only the modes in use are computed (the physics runs this every step)
+            if value == 0:
+                mode_tau = self.kt * c["goal_iq"]
+            elif value == 3:
+                mode_tau = (r["p_gain_force"] * (c["goal_position"] - m) + r["d_gain_force"] * (c["goal_velocity"] - md)
+                            + self.kt * c["goal_iq"])
+            elif value == 2:
+                mode_tau = r["p_gain_position"] * (c["goal_position"] - m) - r["d_gain_position"] * md
+            elif value == 1:
+                mode_tau = r["p_gain_velocity"] * (c["goal_velocity"] - md)
+            else:
+                continue
+            tau = np.where(mode == value, mode_tau, tau)
+        limit = self.kt * r["limit_i_max"]
+        tau = np.minimum(np.maximum(tau, -limit), limit)  # np.clip and np.nan_to_num cost ~20 us at this size
+        tau[np.isnan(tau)] = 0.0
         tau = np.where(on == 1, tau, np.where(on == 3, -self.damping_kd * md, 0.0))
         return tau, bool(np.any(on == 1)), bool(np.all(on == 0))
 
@@ -330,6 +340,22 @@ class EmulatedRobot:
         if bus != "bear":
             self.events.add(f"{bus} {'unplug' if unplugged else 'plug'}")
         (self.unplugged.add if unplugged else self.unplugged.discard)(bus)
+
+    def set_reply_delay(self, bus: str, fixed: float, jitter: float = 0.0, seed: int | str | None = None) -> None:
+        """How late a bus answers from now on: "bear", "dynamixel" (each answer starts fixed + U(0, jitter) s after
+        its request arrived) or "sense" (each packet leaves that much later); see drivers/emulators/reply_delay.py.
+        Logged as an event (`dynamixel reply delay 2 ms + U(0, 1 ms)`; the BEAR emulator logs its own)."""
+        device = {"bear": self.bear, "dynamixel": self.dynamixel, "sense": self.sense}.get(bus)
+        if device is None:
+            raise ValueError(f"no emulated bus {bus!r} to delay (bear, dynamixel or sense, as the config has)")
+        device.set_reply_delay(fixed, jitter, seed)
+        if bus != "bear":
+            self.events.add(f"{bus} reply delay {device.reply_delay.text()}")
+
+    def reply_delays(self) -> dict[str, list[float]]:
+        """{bus: [fixed, jitter]} in seconds, for every bus that has a reply delay setting."""
+        return {bus: device.reply_delay.describe() for bus, device in
+                (("bear", self.bear), ("dynamixel", self.dynamixel), ("sense", self.sense)) if device is not None}
 
     def drain_events(self) -> list[tuple[float, str]]:
         """Every emulator's events since the last drain (those with a `drain_events`) and the robot's own, in time

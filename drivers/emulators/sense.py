@@ -24,7 +24,10 @@ emulated: the adapter can filter if it wants that lag.
 Timing: a thread paces packets on `time.monotonic()`; on a loaded machine the rate is approximate. After a stall of
 up to 10 periods the missed packets are sent at once (as a USB CDC link delivers a backlog); longer gaps are not
 back-filled. When the host does not read, packets are dropped once 2 KiB are waiting unread (the real board's USB
-FIFO fills the same way), so the emulator never blocks.
+FIFO fills the same way), so the emulator never blocks. `set_reply_delay(fixed, jitter)`: every packet leaves
+fixed + U(0, jitter) s later than it would have (its sample is taken on time, so the host sees data that much
+older; the rate is kept), sent in order by a sender thread with an honest wall-clock wait; the firmware and a
+lockstep physics step never wait for it. With jitter a packet never overtakes the one before it (a serial line).
 
 Faults for tests: `set_silent()` (no packets, commands still obeyed), `corrupt_next(how)` ("checksum",
 "trailer", "length", "header", "flags", "truncate"), `inject_garbage(data)` (bytes before the next packet),
@@ -45,6 +48,7 @@ from collections import deque
 import numpy as np
 
 from drivers.emulators.pty_device import PtyDevice
+from drivers.emulators.reply_delay import ReplyDelay, wait_until
 from drivers.sense import (
     COMMAND_LEN,
     COMMAND_REST_LEN,
@@ -109,9 +113,16 @@ class SenseBoardEmulator:
         self.packets_dropped = 0
         self.commands: list[tuple[PicoMode, int]] = []  # every valid command the firmware read, in order
         self.commands_rejected = 0                       # 0xFF-led commands with a bad length/checksum/trailer
+        # set_reply_delay: packets wait in `_outbox` (due time, bytes) for the sender thread, oldest first
+        self.reply_delay = ReplyDelay()
+        self._outbox: deque[tuple[float, bytes]] = deque()
+        self._outbox_changed = threading.Condition()
+        self._in_flight = 0       # packets handed to the sender and not yet written
+        self._last_due = -math.inf
         self._pty = PtyDevice(name, self._on_bytes)
         self._peek_fd = os.open(self._pty.path, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)  # host backlog probe
         self._thread = threading.Thread(target=self._firmware, name=f"emulator-{name}", daemon=True)
+        self._sender = threading.Thread(target=self._send_delayed, name=f"emulator-{name}-sender", daemon=True)
 
     # -- lifecycle
     @property
@@ -122,14 +133,18 @@ class SenseBoardEmulator:
     def start(self) -> SenseBoardEmulator:
         self._pty.start()
         self._thread.start()
+        self._sender.start()
         return self
 
     def close(self) -> None:
         if self._stop.is_set():
             return  # closing twice must not close file descriptors that were reused meanwhile
         self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=2.0)
+        with self._outbox_changed:
+            self._outbox_changed.notify_all()
+        for thread in (self._thread, self._sender):
+            if thread.is_alive():
+                thread.join(timeout=2.0)
         self._pty.close()
         try:
             os.close(self._peek_fd)
@@ -326,7 +341,36 @@ class SenseBoardEmulator:
             packet = _corrupted(packet, how)
         self._send(garbage + bytes(packet))
 
+    def set_reply_delay(self, fixed: float, jitter: float = 0.0, seed: int | str | None = None) -> None:
+        """From now on every packet leaves fixed + U(0, jitter) seconds later than it would have (module docstring).
+        ValueError outside [0, 0.1] s; `seed` makes the draws repeatable."""
+        self.reply_delay.set(fixed, jitter, seed)
+
     def _send(self, data: bytes) -> None:
+        """A packet out now, or, with a reply delay (or packets still waiting), to the sender, due that much later."""
+        with self._outbox_changed:
+            if self.reply_delay.active or self._in_flight:
+                due = max(time.monotonic() + self.reply_delay.draw(), self._last_due)  # in order, as on a wire
+                self._last_due = due
+                self._outbox.append((due, data))
+                self._in_flight += 1
+                self._outbox_changed.notify()
+                return
+        self._write(data)
+
+    def _send_delayed(self) -> None:
+        while not self._stop.is_set():
+            with self._outbox_changed:
+                if not self._outbox:
+                    self._outbox_changed.wait(0.05)
+                    continue
+                due, data = self._outbox.popleft()
+            wait_until(due)
+            self._write(data)
+            with self._outbox_changed:
+                self._in_flight -= 1
+
+    def _write(self, data: bytes) -> None:
         if self._unread() > _MAX_UNREAD:
             self.packets_dropped += 1
             return
@@ -379,7 +423,8 @@ class SenseBoardEmulator:
 
 
 def _counts_to_si(values: np.ndarray, scale: np.float32) -> np.ndarray:
-    counts = np.clip(np.rint(values / float(scale)), -32768, 32767).astype(np.float32)
+    # np.minimum/np.maximum, not np.clip: the same result at a tenth of the cost for 3 values (1000 packets a second)
+    counts = np.minimum(np.maximum(np.rint(values / float(scale)), -32768.0), 32767.0).astype(np.float32)
     return counts * scale
 
 
