@@ -66,22 +66,21 @@ def session(emulator: EmulatorProcess, seconds: float, cmd: str | None, override
 def report(name: str, stats: dict, emulator: EmulatorProcess, no_delay: bool) -> bool:
     legs = (stats.get("link") or {}).get("legs", {})
     cycle = legs.get("bus_cycle_us") or {}
-    wall = stats["wall_time"]
-    rate = stats["ticks"] / wall if wall else float("nan")
-    bulk_rate = legs.get("cycles", 0) / wall if wall else float("nan")
+    rate = stats["rate_hz"] or float("nan")
+    bulk_rate = cycle.get("rate_hz") or float("nan")
     plant = emulator.status()["plant"]
     tripped = stats["fault_class"] is not None
     print(f"   {name}: {stats['final_state']} ({stats['stop_cause']}); exit {stats['returncode']}"
           f"{' -- TRIPPED' if tripped else ''}")
-    print(f"     control rate {rate:.0f} Hz ({stats['ticks']} ticks in {wall:.2f} s); late {stats['late_ticks']} = "
-          f"{100 * stats['late_share']:.2f} %, skipped {stats['skipped_ticks']}; work p50/p99 "
+    print(f"     control rate {rate:.0f} Hz ({stats['ticks']} ticks in {stats['loop_s']:.2f} s); late "
+          f"{stats['late_ticks']} = {100 * stats['late_share']:.2f} %, skipped {stats['skipped_ticks']}; work p50/p99 "
           f"{us(stats['work_us']['p50'])}/{us(stats['work_us']['p99'])} µs")
     read = stats["sections_us"].get("read", {})
     goal = ""
     if no_delay:
         met = "met" if bulk_rate >= BULK_RATE_GOAL_HZ else "MISSED"
         goal = f" (goal >= {BULK_RATE_GOAL_HZ:.0f}/s with no delay: {met})"
-    print(f"     read p50/p99 {us(read.get('p50'))}/{us(read.get('p99'))} µs; bus thread: {legs.get('cycles', 0)} "
+    print(f"     read p50/p99 {us(read.get('p50'))}/{us(read.get('p99'))} µs; bus thread: {cycle.get('cycles', 0)} "
           f"bulk cycles = {bulk_rate:.0f}/s{goal}, cycle p50/p99/max {us(cycle.get('p50'))}/{us(cycle.get('p99'))}/"
           f"{us(cycle.get('max'))} µs; replies lost {legs.get('replies_lost_total', '?')}")
     print(f"     data age p50/p99/max {us(stats['data_age_us']['p50'])}/{us(stats['data_age_us']['p99'])}/"

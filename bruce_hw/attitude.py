@@ -58,8 +58,15 @@ class MahonyAttitude:
         self.angvel = tuple(float(v) for v in gyro)
         self.stamp = stamp
 
-    def update(self, gyro: np.ndarray, accel: np.ndarray, stamp: float) -> tuple[float, float, float, float]:
-        """Advance to this sample (a repeated or older sample integrates nothing); the orientation (w, x, y, z)."""
+    def update(self, gyro: np.ndarray, accel: np.ndarray, stamp: float,
+               linear_accel: tuple[float, float, float] | None = None) -> tuple[float, float, float, float]:
+        """Advance to this sample (a repeated or older sample integrates nothing); the orientation (w, x, y, z).
+
+        `linear_accel`: the base's own acceleration (world frame, m/s^2) where another estimate has it (the
+        kinematic estimator's, from leg odometry). The specific force minus it is then gravity alone, and it is
+        taken in linearly, at every magnitude and without normalising: its mean over a gait is gravity's direction.
+        Without it, the specific force's direction is faded by |a| (`accel_trust`), which is biased while walking:
+        the fade keeps some phases of the step and drops others."""
         if self.stamp is None:
             self.reset(gyro, accel, stamp)
         dt = min(max(stamp - self.stamp, 0.0), MAX_IMU_GAP_S)
@@ -72,12 +79,22 @@ class MahonyAttitude:
             return self.quat
         w, x, y, z = self.quat
         ax, ay, az = accel.tolist()
-        norm = math.sqrt(ax * ax + ay * ay + az * az)
-        trust = self.accel_trust(norm)
+        vx, vy, vz = 2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z  # estimated up
+        if linear_accel is None:
+            norm = math.sqrt(ax * ax + ay * ay + az * az)
+            trust = self.accel_trust(norm)
+            if trust > 0.0:
+                ux, uy, uz = ax / norm, ay / norm, az / norm
+        else:
+            # The specific force less the base's acceleration (R^T of it, the rows of R^T being R's columns), in g.
+            lx, ly, lz = linear_accel
+            k = 1.0 / self.gravity
+            ux = k * (ax - ((1 - 2 * (y * y + z * z)) * lx + 2 * (x * y + w * z) * ly + vx * lz))
+            uy = k * (ay - (2 * (x * y - w * z) * lx + (1 - 2 * (x * x + z * z)) * ly + vy * lz))
+            uz = k * (az - (2 * (x * z + w * y) * lx + 2 * (y * z - w * x) * ly + vz * lz))
+            trust = 1.0
         cx, cy, cz = gx, gy, gz
         if trust > 0.0:
-            ux, uy, uz = ax / norm, ay / norm, az / norm
-            vx, vy, vz = 2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z  # estimated up
             ex, ey, ez = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx  # u x v: turns v towards u
             k = GYRO_BIAS_GAIN * trust * dt
             self.gyro_bias = (bx - k * ex, by - k * ey, bz - k * ez)

@@ -32,18 +32,20 @@ CYCLE_RING = 1 << 16
 
 
 class BusThread:
-    def __init__(self, name: str, cycle: Callable[[Any], Any], first_reading: Any, *, period_s: float, hold_s: float):
+    def __init__(self, name: str, cycle: Callable[[Any], Any], *, period_s: float, hold_s: float):
         self.name = name
         self._cycle = cycle
         self.period_s = period_s
         self.hold_s = hold_s
-        self._latest = first_reading
+        self._latest: Any = None
+        self._go = threading.Event()
         self._command: Any = None
         self._command_stamp = time.monotonic()
         self._wake = threading.Event()
         self._stopping = False
         self.error: BaseException | None = None
         self.cycles = 0
+        self.first_start = self.last_end = 0.0  # time.monotonic() of the first cycle's start, the last one's end
         self.idle_waits = 0        # times the thread stopped cycling on a command older than hold_s
         self._durations = np.zeros(CYCLE_RING, dtype=np.int32)
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
@@ -54,11 +56,24 @@ class BusThread:
         return self._latest
 
     @property
+    def cycling(self) -> bool:
+        """Between begin() and stop()."""
+        return self._go.is_set() and not self._stopping
+
+    @property
     def thread(self) -> threading.Thread:
         return self._thread
 
     def start(self) -> None:
+        """Create the OS thread, waiting for `begin`. Early, before the loop asks for mlockall: a thread created
+        after it has its whole stack (8 MB) faulted in and locked at creation, tens of milliseconds."""
         self._thread.start()
+
+    def begin(self, first_reading: Any) -> None:
+        """Start cycling; `latest` is `first_reading` until the first cycle is done."""
+        self._latest = first_reading
+        self._command_stamp = time.monotonic()
+        self._go.set()
 
     def post(self, command: Any) -> None:
         """The command for the next cycle; starts it now (or right after the cycle in flight)."""
@@ -70,22 +85,25 @@ class BusThread:
         """End the thread after the cycle in flight; True when it has ended within `timeout_s`."""
         self._stopping = True
         self._wake.set()
+        self._go.set()
         if self._thread.is_alive() and self._thread is not threading.current_thread():
             self._thread.join(timeout_s)
         return not self._thread.is_alive()
 
     def cycle_us(self) -> dict[str, float | None]:
-        """p50/p99/max of the cycle durations (the newest CYCLE_RING of them)."""
+        """Cycles, their rate, and p50/p99/max of their durations (the newest CYCLE_RING of them)."""
         n = min(self.cycles, CYCLE_RING)
+        span = self.last_end - self.first_start
+        out = {"cycles": self.cycles, "rate_hz": self.cycles / span if self.cycles > 1 and span > 0 else None}
         if not n:
-            return {"p50": None, "p99": None, "max": None}
+            return {**out, "p50": None, "p99": None, "max": None}
         values = self._durations[:n]
-        return {"p50": float(np.percentile(values, 50)), "p99": float(np.percentile(values, 99)),
+        return {**out, "p50": float(np.percentile(values, 50)), "p99": float(np.percentile(values, 99)),
                 "max": float(values.max())}
 
     def _run(self) -> None:
         perf = time.perf_counter_ns
-        self._command_stamp = time.monotonic()
+        self._go.wait()
         while True:
             woken = self._wake.wait(self.period_s) if self.cycles else True  # the first cycle at once
             self._wake.clear()
@@ -96,6 +114,8 @@ class BusThread:
                 self._wake.wait()
                 continue
             t0 = perf()
+            if not self.cycles:
+                self.first_start = time.monotonic()
             try:
                 self._latest = self._cycle(self._command)
             except BaseException as exc:  # ends the thread; the control thread raises it on its next read
@@ -103,3 +123,4 @@ class BusThread:
                 return
             self._durations[self.cycles % CYCLE_RING] = min((perf() - t0) // 1000, 2**31 - 1)
             self.cycles += 1
+            self.last_end = time.monotonic()

@@ -17,8 +17,9 @@ One tick: the runtime calls read() then write() (runtime/run.py). While active, 
 of their own (`bruce_hw.bus_thread`, as BRUCE-OP's bear thread): write() hands it the goal currents and starts a
 cycle, which writes them and reads present position, velocity and current; read() takes the newest complete reading
 and never waits for the bus, so a slow or jittery bus makes the data older (the data-age check judges it), not the
-tick longer. Inactive and in damping, read() runs a read-only cycle itself. The I/O threads run one real-time
-priority step above the loop on its CPU once the loop has SCHED_FIFO (`bruce_hw.io_priority`).
+tick longer. Inactive and in damping, read() runs a read-only cycle itself. Once the loop has SCHED_FIFO, the
+runtime puts every other thread of the process one real-time priority step above it on its CPU
+(`bruce_hw.io_priority`).
 BEAR mode: torque (mode 0, goal_iq): the runtime sends joint torques (JointCommand.tau_ff); a command that carries
 PD terms is evaluated here on this tick's measured state (JointCommand.torque), because a joint-space PD through
 the differential hip is not a per-motor PD, so BEAR force mode could not carry it exactly. Every 100th cycle one
@@ -73,7 +74,6 @@ from bruce_hw.attitude import MahonyAttitude
 from bruce_hw.backend import Backend, BackendError, LifecycleState
 from bruce_hw.bus_thread import BusThread
 from bruce_hw.config import ASSUMED_BEAR_WATCHDOG_UNIT_S, RobotConfig
-from bruce_hw.io_priority import above_the_caller
 from bruce_hw.types import JointCommand, JointState, RobotState
 
 log = logging.getLogger("bruce_hw.hw")
@@ -110,7 +110,9 @@ STANDARD_GRAVITY = 9.80665    # m/s^2: the sense board reports specific force sc
 # The I/O threads (sense reader, arms, the emulators in a test) must get the GIL within a fraction of
 # safety.max_sensor_age_s; CPython's default switch interval (5 ms) lets a busy thread hold them off that long.
 GIL_SWITCH_INTERVAL_S = 0.0005
-IMU_WAIT_S = 0.002            # how long a stale-looking IMU sample may wait for a newer one (see _newer_sense_sample)
+# How long a stale-looking IMU sample may wait for a newer one (see _newer_sense_sample): short, since the reader
+# thread runs above the loop once it has SCHED_FIFO; it adds to the time a stopped stream takes to reach damping.
+IMU_WAIT_S = 0.0005
 DEFAULT_REPLY_TIMEOUT_S = 0.002  # BRUCE-OP's bulk_timeout, when buses.bear.reply_timeout_s is not set
 BUS_STOP_TIMEOUT_S = 0.05   # the longest a bus cycle can take (reply timeout, monitor read) with a margin
 REQUEST_TRIES = 4             # BEAR requests outside the tick's bulk cycle (see BearLegs.open)
@@ -705,6 +707,7 @@ class HwBackend(Backend):
         # Levels itself on the first sample (the robot is still after the IMU check).
         self._attitude = MahonyAttitude(STANDARD_GRAVITY)
         self.arms.start()  # before the loop asks for real-time scheduling: threads inherit the caller's
+        self._bus = self._new_bus_thread()  # created now, cycling from activate() on
         atexit.register(self.shutdown)  # an interpreter exit that skipped shutdown() still ends in damping
         log.info("hw backend: configured: %s BEAR/CAN ID(s) %s, Dynamixel ID(s) %s, sense board %s",
                  self.legs.name, _ids(self.legs.ids), _ids(self.config.buses.dynamixel.ids), self.sense_port)
@@ -742,13 +745,15 @@ class HwBackend(Backend):
             raise
         # From here the legs' cycles run on their own thread; the first reading is taken here so read() never waits.
         first = self.legs.cycle(None, retry=True)
-        self._bus = BusThread("hw-legs", self.legs.cycle, first, period_s=self.config.dt, hold_s=self.max_sensor_age)
-        self._bus.start()
-        threads = [self._bus.thread, self.sense.thread, self.arms.thread]
-        priority = above_the_caller([t for t in threads if t is not None])
-        if priority is not None:
-            log.info("hw backend: bus, sense and arm threads at SCHED_FIFO %d on the loop's CPU(s)", priority)
+        if self._bus is None or not self._bus.thread.is_alive():  # activated again after a deactivate
+            self._bus = self._new_bus_thread()
+        self._bus.begin(first)
         self.arms.hold()
+
+    def _new_bus_thread(self) -> BusThread:
+        bus = BusThread("hw-legs", self.legs.cycle, period_s=self.config.dt, hold_s=self.max_sensor_age)
+        bus.start()
+        return bus
 
     def _stop_bus(self) -> None:
         """End the legs' bus thread (after its cycle in flight): the caller owns the port from here."""
@@ -758,7 +763,8 @@ class HwBackend(Backend):
         if not bus.stop(BUS_STOP_TIMEOUT_S):
             log.error("hw backend: %s: the bus thread did not end within %.0f ms", self.legs.name,
                       1e3 * BUS_STOP_TIMEOUT_S)
-        self.bus_cycle_us = {**bus.cycle_us(), "cycles": bus.cycles}
+        if bus.cycles:
+            self.bus_cycle_us = bus.cycle_us()
 
     def _on_deactivate(self) -> None:
         self._stop_bus()
@@ -811,7 +817,7 @@ class HwBackend(Backend):
         """Per-bus link figures for the run's stats: leg cycles and lost replies per ID, arm cycles."""
         legs = self.legs.link_report()
         bus = self._bus
-        cycle = {**bus.cycle_us(), "cycles": bus.cycles} if bus is not None else self.bus_cycle_us
+        cycle = bus.cycle_us() if bus is not None and bus.cycles else self.bus_cycle_us
         if cycle is not None:
             legs["bus_cycle_us"] = cycle
         report = {"legs": legs,
@@ -841,7 +847,7 @@ class HwBackend(Backend):
         state = self._state
         bus = self._bus
         try:
-            if bus is not None:  # active: the newest reading of the bus thread, never waited for
+            if bus is not None and bus.cycling:  # active: the newest reading of the bus thread, never waited for
                 if bus.error is not None:
                     raise bus.error
                 reading = bus.latest
@@ -889,7 +895,7 @@ class HwBackend(Backend):
 
     def _newer_sense_sample(self, stamp: float) -> tuple:
         """A stale-looking sample gets IMU_WAIT_S to be superseded: the reader thread may only have been kept off
-        the GIL (a garbage collection, a burst of other threads), and sleeping here lets it run."""
+        the GIL or the CPU for a moment, and sleeping here lets it run."""
         deadline = time.monotonic() + IMU_WAIT_S
         while time.monotonic() < deadline:
             time.sleep(0.0002)
@@ -915,7 +921,7 @@ class HwBackend(Backend):
         if not np.all(np.isfinite(tau_m)):
             raise self._fail("non-finite torque command (nothing sent)")
         self._torque = np.minimum(np.maximum(tau_m, -self.torque_limit), self.torque_limit)
-        if self._bus is not None:
+        if self._bus is not None and self._bus.cycling:
             self._bus.post(self._torque)
 
 

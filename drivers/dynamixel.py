@@ -363,6 +363,7 @@ def indirect_read_map() -> bytes:
 
 # -- SDK glue ----------------------------------------------------------------------------------------------------
 _PORT_CLASS: type | None = None
+READ_SLICE_S = 0.0005  # the longest one poll of the port blocks (see DynamixelArms.open)
 
 
 def _bounded_port_class() -> type:
@@ -519,6 +520,10 @@ class DynamixelArms:
             raise DriverError(f"{self.bus}: cannot open at {self.baud} baud: {exc}") from exc
         if not opened:
             raise DriverError(f"{self.bus}: cannot open at {self.baud} baud (unsupported rate?)")
+        # The SDK opens its pyserial port with timeout 0 and polls it in a loop until a reply or its packet timeout
+        # (up to 2 x latency + 2 ms): a busy loop that holds the GIL and the CPU. A read slice makes each poll block
+        # in select instead; the packet timeout still bounds the whole wait.
+        port.ser.timeout = READ_SLICE_S
         self._port, self._ph = port, PacketHandler(2.0)
         self._sync_read = GroupSyncRead(port, self._ph, ADDR_INDIRECT_DATA_READ, READ_BLOCK_LENGTH)
         self._sync_write = GroupSyncWrite(port, self._ph, ADDR_GOAL_POSITION, 4)

@@ -50,6 +50,7 @@ class LoopStats:
         self.data_age = Histogram()  # age of the oldest joint or IMU sample when the tick read it
         self.sections = {name: Histogram() for name in sections}
         self.ticks = 0
+        self.loop_s = 0.0  # from the first tick's start to the last one's (the achieved rate is ticks / loop_s)
         self.late_ticks = 0
         self.skipped_ticks = 0
         self._worst: list[int] = []  # min-heap of the largest lateness values (ns)
@@ -66,6 +67,8 @@ class LoopStats:
             "ticks": self.ticks,
             "late_ticks": self.late_ticks,
             "late_share": self.late_ticks / self.ticks if self.ticks else 0.0,
+            "loop_s": self.loop_s,
+            "rate_hz": (self.ticks - 1) / self.loop_s if self.loop_s > 0 else None,
             "skipped_ticks": self.skipped_ticks,
             "work_us": {"p50": self.work.percentile(50), "p99": self.work.percentile(99),
                         "max": self.work.max_ns / 1000.0 if self.work.n else None},
@@ -87,7 +90,8 @@ class LoopStats:
             return "-" if value is None else f"{value:.0f}"
 
         work, period = j["work_us"], j["period_us"]
-        lines = [f"  loop: work p50 {us(work['p50'])} / p99 {us(work['p99'])} / max {us(work['max'])} µs, period "
+        rate = "" if j["rate_hz"] is None else f"{j['rate_hz']:.0f} Hz, "
+        lines = [f"  loop: {rate}work p50 {us(work['p50'])} / p99 {us(work['p99'])} / max {us(work['max'])} µs, period "
                  f"p50 {us(period['p50'])} / p99 {us(period['p99'])} / max {us(period['max'])} µs, late "
                  f"{self.late_ticks} ({100 * j['late_share']:.3f} %), skipped {self.skipped_ticks}",
                  f"  data age p50 {us(j['data_age_us']['p50'])} / p99 {us(j['data_age_us']['p99'])} / max "

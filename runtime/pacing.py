@@ -3,12 +3,17 @@
 Sleep until shortly before the deadline, then spin: plain sleeps overshoot by tens of microseconds, and
 relative sleeps (sleep(dt - elapsed)) drift. The spin yields the GIL on every turn (sleep(0)): the hw backend's bus
 thread runs its cycle in this part of the tick, and a spin that held the GIL would keep it waiting up to the
-interpreter's switch interval. A tick that starts more than `late_after_s` past its deadline is
+interpreter's switch interval. A SCHED_FIFO thread does not spin at all: the kernel gives real-time threads no timer
+slack, so a sleep wakes within tens of microseconds, and a spin would count against the CPU's real-time budget
+(sched_rt_runtime_us, 95 % of each second): with the bus and I/O threads on the same CPU, 20 % of spin pushed it
+into real-time throttling, which stops every real-time thread on the CPU for the rest of the second (50 ms
+stalls). A tick that starts more than `late_after_s` past its deadline is
 late; if whole periods were missed, their ticks are skipped and counted, never run in a burst to catch up.
 """
 
 from __future__ import annotations
 
+import os
 import time
 
 
@@ -22,6 +27,9 @@ class Pacer:
         self.skipped_ticks = 0
 
     def start(self) -> None:
+        """From now; call it on the thread that will wait (its scheduling decides whether to spin)."""
+        if _fifo():
+            self.spin_ns = 0
         self.deadline_ns = time.monotonic_ns() + self.period_ns
 
     def wait(self) -> int:
@@ -43,3 +51,10 @@ class Pacer:
             behind = now - self.deadline_ns
         self.deadline_ns += self.period_ns
         return behind
+
+
+def _fifo() -> bool:
+    try:
+        return os.sched_getscheduler(0) == os.SCHED_FIFO
+    except (AttributeError, OSError):
+        return False

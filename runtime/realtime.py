@@ -24,19 +24,20 @@ class RealtimeGrant:
     cpu: int | None = None
     memory_locked: bool = False
     refused: list[str] = field(default_factory=list)
+    helpers: str | None = None  # the process's other threads, once put above the loop (runtime.run)
     _restore: list = field(default_factory=list, repr=False)
 
     def text(self) -> str:
         got = [self.scheduler, f"CPU {self.cpu}" if self.cpu is not None else "any CPU",
                "memory locked" if self.memory_locked else "memory not locked"]
-        line = "realtime: " + ", ".join(got)
+        line = "realtime: " + ", ".join(got) + (f"; {self.helpers}" if self.helpers else "")
         if self.refused:
             line += " (refused: " + "; ".join(self.refused) + ")"
         return line
 
     def to_json(self) -> dict:
         return {"scheduler": self.scheduler, "cpu": self.cpu, "memory_locked": self.memory_locked,
-                "refused": list(self.refused)}
+                "helpers": self.helpers, "refused": list(self.refused)}
 
     def release(self) -> None:
         """Undo what was granted (the calling thread's scheduler and affinity, the memory lock)."""

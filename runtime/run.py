@@ -21,6 +21,7 @@ import logging
 import math
 import queue
 import sys
+import threading
 import time
 from dataclasses import asdict, dataclass, field, fields
 from logging.handlers import QueueHandler, QueueListener
@@ -30,6 +31,7 @@ import numpy as np
 
 from bruce_hw.backend import Backend, BackendError, LifecycleState
 from bruce_hw.config import RobotConfig
+from bruce_hw.io_priority import above_the_caller
 from bruce_hw.types import GroundTruth, JointCommand, RobotState
 from runtime.commands import COMMAND_AXES
 from runtime.estimation import Estimator, euler_of, make_estimator, tilt_angle, tilt_of
@@ -226,8 +228,8 @@ class RunSummary:
         if "replies_lost" in legs:
             lost = {i: n for i, n in legs["replies_lost"].items() if n}
             cycle = legs.get("bus_cycle_us") or {}
-            timing = (f" (bus thread: cycle p50 {cycle['p50']:.0f} / p99 {cycle['p99']:.0f} / max {cycle['max']:.0f} "
-                      f"µs)") if cycle.get("p50") is not None else ""
+            timing = (f" (bus thread: {cycle['rate_hz'] or 0:.0f}/s, cycle p50 {cycle['p50']:.0f} / p99 "
+                      f"{cycle['p99']:.0f} / max {cycle['max']:.0f} µs)") if cycle.get("p50") is not None else ""
             lines.append(f"  {legs['bus']}: {legs['cycles']} cycles{timing}, {legs['replies_lost_total']} replies lost "
                          f"({100 * legs['reply_loss_share']:.2f} %)"
                          + (": " + ", ".join(f"ID {i} {n}" for i, n in lost.items()) if lost else ""))
@@ -442,6 +444,11 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         if pinn_runner is not None:
             pinn_runner.reset()
         backend.activate()  # the last step before the loop: the first tick's reading is as fresh as it can be
+        if grant is not None and grant.scheduler.startswith("SCHED_FIFO"):
+            others = [t for t in threading.enumerate() if t is not threading.current_thread()]
+            priority, restore = above_the_caller(others)
+            grant._restore.insert(0, restore)  # undone last: after the loop thread's own scheduling
+            grant.helpers = f"{len(others)} other threads at SCHED_FIFO {priority}" if priority else None
         until = "until Ctrl-C" if duration is None else f"for {duration:g} s"
         commanded = "" if commands is None else f", {getattr(commands, 'name', type(commands).__name__)}"
         print(f"bruce-run: {backend.name} backend active, {controller_name}{commanded}, transfer {transfer}, {until}"
@@ -518,7 +525,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     pacer = Pacer(config.dt)
     late_ns = pacer.late_ns
     pacer.start()
-    tick, previous_start = 0, 0
+    tick, previous_start, first_start = 0, 0, 0
     a = q_hat = qd_hat = None
     recorder_stop = None
     standstill = np.zeros(3)
@@ -602,6 +609,8 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
             stats.work.add(perf() - t0)
             if tick:
                 stats.period.add(t0 - previous_start)
+            else:
+                first_start = t0
             previous_start = t0
             tick += 1
             stats.ticks = tick
@@ -609,6 +618,8 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
                 break
     finally:  # a backend error raised from read() still leaves correct counters
         stats.late_ticks, stats.skipped_ticks = pacer.late_ticks, pacer.skipped_ticks
+        if tick > 1:
+            stats.loop_s = (previous_start - first_start) / 1e9
 
     if stop.cause is not None:
         safety.trip(f"{stop.cause} received")

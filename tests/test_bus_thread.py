@@ -35,14 +35,18 @@ def wait_for(predicate, timeout_s: float = 5.0) -> bool:
 
 def test_a_posted_command_reaches_the_bus_and_its_reading_comes_back():
     bus = FakeBus()
-    thread = BusThread("test-bus", bus.cycle, ("first", 0, None), period_s=0.001, hold_s=1.0)
-    assert thread.latest == ("first", 0, None)
+    thread = BusThread("test-bus", bus.cycle, period_s=0.001, hold_s=1.0)
     thread.start()
+    time.sleep(0.02)
+    assert not bus.sent  # started, but no cycle before begin()
+    thread.begin(("first", 0, None))
+    assert thread.latest[0] in ("first", "reading")
     try:
+        assert wait_for(lambda: thread.cycles >= 1)
+        assert bus.sent[0] is None  # before the first command: read-only cycles
         thread.post("tau-1")
         assert wait_for(lambda: thread.latest[2] == "tau-1")
         assert "tau-1" in bus.sent
-        assert bus.sent[0] is None  # before the first command: read-only cycles
     finally:
         assert thread.stop()
     assert thread.cycles == len(bus.sent) and thread.cycle_us()["p50"] is not None
@@ -50,8 +54,9 @@ def test_a_posted_command_reaches_the_bus_and_its_reading_comes_back():
 
 def test_latest_never_waits_for_a_slow_cycle():
     bus = FakeBus(cycle_s=0.05)
-    thread = BusThread("test-bus", bus.cycle, ("first", 0, None), period_s=0.001, hold_s=1.0)
+    thread = BusThread("test-bus", bus.cycle, period_s=0.001, hold_s=1.0)
     thread.start()
+    thread.begin(("first", 0, None))
     try:
         assert wait_for(lambda: thread.cycles >= 1)
         thread.post("tau")
@@ -68,8 +73,9 @@ def test_the_cycles_stop_when_no_command_comes_for_hold_s():
     """A hung control thread must not keep feeding the motors its last torque: the cycles stop, so the motors'
     own watchdogs see silence."""
     bus = FakeBus()
-    thread = BusThread("test-bus", bus.cycle, ("first", 0, None), period_s=0.001, hold_s=0.02)
+    thread = BusThread("test-bus", bus.cycle, period_s=0.001, hold_s=0.02)
     thread.start()
+    thread.begin(("first", 0, None))
     try:
         thread.post("tau")
         assert wait_for(lambda: thread.idle_waits >= 1)
@@ -85,8 +91,9 @@ def test_the_cycles_stop_when_no_command_comes_for_hold_s():
 
 def test_self_paced_cycles_repeat_the_newest_command_between_posts():
     bus = FakeBus()
-    thread = BusThread("test-bus", bus.cycle, ("first", 0, None), period_s=0.002, hold_s=0.5)
+    thread = BusThread("test-bus", bus.cycle, period_s=0.002, hold_s=0.5)
     thread.start()
+    thread.begin(("first", 0, None))
     try:
         thread.post("tau")
         posted = len(bus.sent)
@@ -98,8 +105,9 @@ def test_self_paced_cycles_repeat_the_newest_command_between_posts():
 
 def test_a_failing_cycle_ends_the_thread_and_is_kept_for_the_control_thread():
     bus = FakeBus(fail_at=3)
-    thread = BusThread("test-bus", bus.cycle, ("first", 0, None), period_s=0.001, hold_s=1.0)
+    thread = BusThread("test-bus", bus.cycle, period_s=0.001, hold_s=1.0)
     thread.start()
+    thread.begin(("first", 0, None))
     thread.post("tau")
     assert wait_for(lambda: thread.error is not None)
     assert isinstance(thread.error, OSError) and "adapter is gone" in str(thread.error)
@@ -109,8 +117,9 @@ def test_a_failing_cycle_ends_the_thread_and_is_kept_for_the_control_thread():
 
 def test_stop_ends_the_thread_after_the_cycle_in_flight():
     bus = FakeBus(cycle_s=0.02)
-    thread = BusThread("test-bus", bus.cycle, ("first", 0, None), period_s=0.001, hold_s=1.0)
+    thread = BusThread("test-bus", bus.cycle, period_s=0.001, hold_s=1.0)
     thread.start()
+    thread.begin(("first", 0, None))
     thread.post("tau")
     assert wait_for(lambda: len(bus.sent) >= 1)
     assert thread.stop(timeout_s=2.0)

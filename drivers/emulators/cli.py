@@ -181,7 +181,11 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     finally:
         if restore is not None:
-            restore()  # the main thread (and bruce-run with --run) back to normal scheduling on every CPU
+            # The main thread and those it starts next (the event printer, the stdin reader) one real-time step below
+            # the devices, off bruce-run's CPU: a thread of ours left at normal priority, preempted by any busy
+            # process while it held our GIL, stalled every emulated device for tens of milliseconds. With --run,
+            # bruce-run is this process: normal scheduling on every CPU.
+            restore(below=args.run is None)
     if args.bear_drop or args.bear_corrupt:
         if robot.bear is None:
             robot.close()
@@ -195,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         seed = None if args.loss_seed is None else f"{args.loss_seed}/{bus}"
         robot.set_reply_delay(bus, fixed, jitter, seed)
-    # Started after `restore()`: printing is no device's work, it runs at normal priority.
+    # Started after `restore()`: printing is no device's work, it runs below the devices.
     printer = _EventPrinter(robot)
     # Everything allocated so far (MuJoCo, numpy, the emulators) out of the collector's reach: a full collection
     # over it holds the GIL for milliseconds, long enough for a BEAR reply to miss the host's 2 ms timeout.
@@ -276,7 +280,10 @@ def _realtime():
         except OSError as exc:
             text += f" (affinity refused: {exc.strerror})"
 
-    def restore() -> None:
+    def restore(below: bool = False) -> None:
+        if below:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(EMULATOR_PRIORITY - 1))
+            return
         os.sched_setscheduler(0, policy, param)
         os.sched_setaffinity(0, allowed)
 
