@@ -21,7 +21,8 @@ Choices where the sources are silent or disagree (drivers/emulators/bear.py make
   packet (it is an instruction, e.g. an echo or another host) and is rejected as "foreign".
 - The ping reply's data (firmware/hardware version; content undocumented) is returned as raw bytes of any length.
 - Timeouts: all replies of a request must be in within `reply_timeout_s` (2 ms: BRUCE's bulk_timeout, AOS) plus the
-  wire time of request and replies at the bus baud rate; `tries` = 2 (AOS). A bulk retry is sent only to the motors
+  wire time of request and replies at the bus baud rate, and once they have started, each within REPLY_GAP_S of the
+  bytes before it; `tries` = 2 (AOS). A bulk retry is sent only to the motors
   that did not answer (their goals are written again; goal writes are idempotent). Serial reads block at most
   `read_slice_s` each, so no call can block for long, whatever the device does. Replies come in request order, so
   once the last ID's reply is in, a missing earlier one is lost and nobody waits for it. The control tick's bulk
@@ -58,6 +59,9 @@ FLOAT32_MAX = 3.4028234663852886e38
 # The Koala BEAR's rated current (BRUCE-OP: limit_i_max 30 A = 10.5 N m at 0.35 N m/A). No current register is ever
 # written beyond it, whatever a caller computed: a wrong torque constant in a config must not reach the windings.
 RATED_CURRENT_A = 30.0
+# Longest pause between two replies of one request before the rest counts as lost: the BEARs answer back to back,
+# and a USB adapter in low-latency mode delivers what it holds at least every millisecond.
+REPLY_GAP_S = 0.0015
 RATED_LIMITS = {"limit_i_max": RATED_CURRENT_A, "goal_iq": RATED_CURRENT_A, "goal_id": RATED_CURRENT_A}
 
 
@@ -762,12 +766,17 @@ class BearBus:
         self._send(request)
         deadline = time.monotonic() + budget
         got: dict[int, StatusPacket] = {}
-        while len(got) < len(ids) and time.monotonic() < deadline:
+        while len(got) < len(ids) and (now := time.monotonic()) < deadline:
             missing = (len(ids) - len(got)) * per_reply - self._parser.pending
             try:
                 chunk = self._serial.read(max(1, missing))  # returns when `missing` bytes are in or after a slice
             except self._io_errors as exc:
                 raise DriverError(f"{self.port}: read failed: {exc}") from exc
+            if chunk:
+                # The replies come back to back: once they have started, a pause longer than REPLY_GAP_S means the
+                # rest is lost, so a lost reply costs that gap, not the whole timeout (which covers the bus delay
+                # before the first reply).
+                deadline = min(deadline, now + REPLY_GAP_S + self._wire_s(missing))
             for packet in self._parser.feed(chunk):
                 if packet.id in got:
                     self.stats.reject("duplicate")
