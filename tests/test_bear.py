@@ -718,3 +718,18 @@ def test_low_latency_mode_is_asked_for_and_reported(bus, emulator):
     """A pseudo-terminal has no ASYNC_LOW_LATENCY flag: the driver says so, naming the port, and runs on."""
     assert bus.low_latency.startswith("low-latency mode: not available on " + emulator.path), bus.low_latency
     assert bus.ping(1).id == 1
+
+
+def test_a_lost_last_reply_costs_the_reply_gap_not_the_timeout(emulator, bus):
+    """Replies come back to back: when the last ID is silent, the cycle ends a reply gap after the others arrived,
+    long before the 200 ms reply timeout (which covers the bus delay before the first reply)."""
+    emulator.silence([IDS[-1]])
+    t0 = time.perf_counter()
+    reply = bus.bulk_cycle(IDS, None, partial=True)
+    elapsed = time.perf_counter() - t0
+    assert reply.lost_ids == (IDS[-1],)
+    assert elapsed < 0.1, elapsed  # typically ~2 ms; the timeout alone would be 200 ms
+    emulator.silence(IDS)  # nothing answers: the whole timeout is waited
+    t0 = time.perf_counter()
+    reply = bus.bulk_cycle(IDS, None, partial=True)
+    assert reply.lost_ids == tuple(IDS) and time.perf_counter() - t0 >= 0.2
