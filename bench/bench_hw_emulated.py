@@ -97,10 +97,15 @@ def faults(emulator: EmulatorProcess, trials: int, overrides: list[str]) -> None
             config = load_config(overrides=emulator.overrides + overrides)
             backend = make_hw_backend(config, check_imu=False)
             quiet = io.StringIO()  # the session's summary and log lines
+            fault = FaultAt(emulator, inject)
             with contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet), \
                     contextlib.suppress(BackendError):
                 run_session(backend, config, duration=2.0, realtime=True, controller_kind="standing",
-                            commands=FaultAt(emulator, inject))
+                            commands=fault)
+            if not fault.sent:  # the run ended before the fault was injected
+                causes.add(f"ended before the fault: {backend.fault_cause}")
+                emulator.send("place")
+                continue
             at = reply_time(emulator.reply())
             emulator.send(undo)
             emulator.send("place")
