@@ -2,7 +2,9 @@
 
 The gyro is integrated; roll and pitch are pulled towards the measured up direction (the specific force's), and
 the same error is integrated into a gyro bias. The pull fades as |a| leaves g, so landings and the motors'
-reaction forces do not tilt it. Heading comes from the gyro alone and drifts: gravity does not observe it.
+reaction forces do not tilt it. A caller that estimates the base's own acceleration (the kinematic estimator, from
+leg odometry) passes it to `update`, and the specific force less it is then taken in without the fade, which is
+biased while walking. Heading comes from the gyro alone and drifts: gravity does not observe it.
 One filter for every consumer: the hw backend (which fills `ImuSample.orientation` for a sense board that has
 none) and the kinematic base estimator.
 """

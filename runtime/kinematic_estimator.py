@@ -3,23 +3,32 @@
 A real BRUCE measures joint angles and velocities, the IMU's gyro and specific force, and four toe/heel
 contact switches; the sense board gives no orientation, so none is used here.
 
-- Attitude: `bruce_hw.attitude.MahonyAttitude` (gyro integrated, roll and pitch pulled towards the specific
-  force while |accel| is near g, gyro bias learned; yaw starts at 0 on reset and is never corrected: nothing on
-  the robot observes heading).
+- Attitude: `bruce_hw.attitude.MahonyAttitude` (gyro integrated, roll and pitch pulled towards gravity's
+  direction, gyro bias learned; yaw starts at 0 on reset and is never corrected: nothing on the robot observes
+  heading). Gravity is the specific force less the base's own acceleration, the velocity filter's (below): its
+  slow part comes from the leg odometry, so the correction has no bias from walking's accelerations, and a
+  horizontal accelerometer bias goes into the tilt instead of the velocity. (The specific force's direction faded
+  by |a|, as `MahonyAttitude` does alone, kept some phases of the step and dropped others: walking at 0.4 m/s on
+  the mock its mean was 2.9 deg off in roll, and the estimate's roll error grew to 3.7 deg over 30 s; on the
+  truth's attitude 3 deg off in roll the policy fell at 5.7 s.) `estimate` carries the attitude forward over
+  the IMU's delay (IMU_DELAY_S).
 - Velocity: a Kalman filter on the base's linear velocity in the (yaw-relative) world frame. Prediction
   integrates the accelerometer, v += (R a - g) dt, whose errors (tilt error times g, biases, impacts) grow the
   variance; each foot with a contact switch closed is a measurement: a foot point touching the ground
   is at rest, so the base moves at v = -R (J(q) qd + w x r), with r that point relative to the base and
   J(q) qd its velocity relative to the base, both from the robot's own MJCF with the base held at the origin.
   The point is the lowest point of the toe and/or heel sphere whose switch is closed: a line foot rolls on
-  them. A foot that has just touched down (impact, bounce, slip) is trusted less for 20 ms; a foot with
-  both switches open is not used, so in the air the velocity comes from the IMU alone.
+  them. A sphere whose switch has just closed (impact, compression, slip) is trusted less, by a standard
+  deviation that decays over ~50 ms (TOUCHDOWN_SPEED, TOUCHDOWN_TAU); a foot with both switches open is not
+  used, so in the air the velocity comes from the IMU alone.
   The measurements and the accelerometer are taken isotropic, so the 3x3 covariance stays a multiple of the
   identity: the filter is three scalar filters sharing one variance, which keeps the 1 kHz update in scalar
   Python math.
 """
 
 from __future__ import annotations
+
+import math
 
 import mujoco
 import numpy as np
@@ -35,19 +44,39 @@ from runtime.estimation import BaseEstimate, euler_of, rotate_to_body
 # rolling and compressing.
 ODOMETRY_STD = 0.1
 # VELOCITY_RANDOM_WALK, (m/s)^2 per s: variance growth from integrating the accelerometer, whose errors are
-# slow (tilt error times g, 1 deg ~ 0.17 m/s^2; biases ~0.1 m/s^2). It sets the filter's time constant tau
-# (q = ODOMETRY_STD^2 dt / tau^2): a slow acceleration error b costs ~b tau, odometry noise ~ODOMETRY_STD
-# sqrt(dt / 2 tau); with b ~ 0.2 m/s^2 their sum is smallest near tau = 30 ms, q ~ 0.01 (one foot on the
-# ground: ~30 ms, both: ~20 ms).
-VELOCITY_RANDOM_WALK = 0.01
-# A foot that has just touched down bounces, compresses and may slip: its odometry's standard deviation is this
-# many times ODOMETRY_STD (variance x100: practically ignored) for TOUCHDOWN_S after its first switch closes.
-# 20 ms is our estimate of a gentle step's impact transient; the mock's soft contacts take ~60 ms to recover
-# from a 2 m/s landing.
-TOUCHDOWN_STD_SCALE = 10.0
-TOUCHDOWN_S = 0.02
+# slow. It sets the filter's time constant tau (q = ODOMETRY_STD^2 dt / tau^2): a slow acceleration error b costs
+# ~b tau, odometry noise ~ODOMETRY_STD sqrt(dt / 2 tau). The attitude is corrected with this filter's
+# acceleration, which turns a horizontal accelerometer bias into tilt, so b is what is left: the vertical bias and
+# the tilt's residual error (0.1 deg ~ 0.017 m/s^2), ~0.02 m/s^2; the sum is smallest near tau = 140 ms, q = 0.0005
+# (one foot on the ground: 140 ms, both: 100 ms). The odometry's errors are not white either (a landing's tail, a
+# stance foot creeping, a sole compressing: tens of ms each), and tau averages them. Mock, 0.4 m/s, default reality
+# gap, control on the truth: velocity RMSE per axis x/y 0.025/0.031 m/s at q = 0.01 (tau 30 ms), 0.008/0.018 at
+# 0.0005; walking on the estimate (nominal mock, 30 s) at q = 0.01 the teacher fell at 7 and 11 s (0.4, 0, 0 and
+# 0.4, 0, 0.3) and the policy at 7 s (0.4, 0, 0.3); at 0.001 and 0.0005 none fell.
+VELOCITY_RANDOM_WALK = 0.0005
+# A sphere whose switch has just closed is still moving: the foot lands with some speed, compresses, bounces and
+# slides before it settles. Its odometry's error, added in quadrature to ODOMETRY_STD, is taken as
+# TOUCHDOWN_SPEED e^(-t / TOUCHDOWN_TAU), t the time since that switch closed. Measured on the mock walking at
+# 0.4 m/s (the point's own speed, which is the odometry's error, by time since the heel closed): 1.1 m/s over the
+# first 10 ms, 0.38, 0.13, 0.045, 0.018 over the next 10 ms windows, and the toe sinks at ~0.2 m/s for ~20 ms after
+# it closes behind the heel. With a flat window instead (10x the standard deviation for 20 ms) the third
+# window's 0.13 m/s went in at full weight: walking on the estimate, its forward velocity was 0.010 m/s slow on
+# average (RMSE 0.013-0.015 m/s); with this decay, 0.002 (0.007).
+TOUCHDOWN_SPEED = 2.0  # m/s
+TOUCHDOWN_TAU = 0.01   # s
 # m/s, standard deviation of the velocity at reset (the robot is at rest, up to sway).
 RESET_VELOCITY_STD = 0.01
+# -- attitude --------------------------------------------------------------------------------------------
+# s, how old the IMU's motion is when the loop reads it: the estimate's attitude is carried forward over it at the
+# measured rate. On the robot, the ISM330DHCX's 5-sample average at 1.66 kHz (~1.2 ms of group delay) and the bulk
+# read's trip back through the FTDI latency timer (~1 ms; configs/gaps/default.yaml's sensor latency): ~2 ms. The
+# nominal mock's IMU is 1 ms old (it computes its sensors before the physics step whose time they carry), the
+# default gap's 2 ms. The walking policy is sensitive to this lag: walking at (0.4, 0, 0.3) on the truth's attitude
+# 1 ms late grew its pitch swing from 2.5 to 3.5 deg (std) over 30 s, and on the kinematic estimate without this
+# it fell at 14 s. With 2 ms (1 ms ahead on the nominal mock: pitch error 0.09 deg RMS) the policy and the teacher
+# walked 30 s at (0.4, 0, 0) and (0.4, 0, 0.3) on the nominal mock and on the default gap (seeds 0-2); with 1 ms the
+# teacher fell at 11.6 s at (0.4, 0, 0.3) on the default gap (seed 0).
+IMU_DELAY_S = 0.002
 
 FEET = (("r_toe", "r_heel"), ("l_toe", "l_heel"))  # per foot, its toe and heel contact/geom names
 
@@ -60,7 +89,7 @@ def _index(indices: list[int]) -> slice | np.ndarray:
 
 
 class _Foot:
-    """One foot's contact switches, the spheres they sit on, and how long it has been on the ground."""
+    """One foot's contact switches, the spheres they sit on, and how long each has been on the ground."""
 
     def __init__(self, model: mujoco.MjModel, toe: str, heel: str):
         self.toe_switch, self.heel_switch = FOOT_CONTACT_NAMES.index(toe), FOOT_CONTACT_NAMES.index(heel)
@@ -70,7 +99,7 @@ class _Foot:
             raise ValueError(f"MJCF: geoms {toe!r} and {heel!r} must be on the same foot body")
         self.toe_radius = float(model.geom_size[self.toe_geom][0])
         self.heel_radius = float(model.geom_size[self.heel_geom][0])
-        self.ticks_on_ground = 0
+        self.toe_ticks = self.heel_ticks = 0  # ticks since that switch closed; 0: open
 
 
 class KinematicEstimator:
@@ -90,12 +119,17 @@ class KinematicEstimator:
         self.point = np.zeros(3)
         self.feet = [_Foot(model, toe, heel) for toe, heel in FEET]
         self.gravity = float(-model.opt.gravity[2])
-        self.touchdown_ticks = max(1, round(TOUCHDOWN_S * config.loop_hz))
+        # Odometry variance by ticks since a switch closed (1: just closed), up to where the touchdown's share has
+        # fallen below 1 % of ODOMETRY_STD^2; settled beyond.
+        tau = TOUCHDOWN_TAU * config.loop_hz
+        self.settle_ticks = max(1, math.ceil(tau * math.log(10.0 * TOUCHDOWN_SPEED / ODOMETRY_STD)))
         self.odometry_variance = ODOMETRY_STD ** 2
-        self.touchdown_variance = (TOUCHDOWN_STD_SCALE * ODOMETRY_STD) ** 2
+        self.touchdown_variance = [0.0] + [ODOMETRY_STD ** 2 + (TOUCHDOWN_SPEED * math.exp(-(k - 1) / tau)) ** 2
+                                           for k in range(1, self.settle_ticks + 1)]
         self.attitude = MahonyAttitude(self.gravity)
         self.stamp = 0.0
         self.velocity = (0.0, 0.0, 0.0)        # m/s, world frame
+        self.acceleration = (0.0, 0.0, 0.0)    # m/s^2, world frame: the estimated velocity's last change per s
         self.variance = RESET_VELOCITY_STD ** 2  # (m/s)^2, per axis
 
     def reset(self, state: RobotState) -> None:
@@ -103,11 +137,13 @@ class KinematicEstimator:
         self.attitude.reset(state.imu.gyro, state.imu.accel, state.imu.stamp)
         self.stamp = state.imu.stamp
         self.velocity = (0.0, 0.0, 0.0)
+        self.acceleration = (0.0, 0.0, 0.0)
         self.variance = RESET_VELOCITY_STD ** 2
         contact = state.contacts.contact.tolist()
-        for foot in self.feet:  # feet already down at reset are settled, not touching down
-            on_ground = contact[foot.toe_switch] or contact[foot.heel_switch]
-            foot.ticks_on_ground = self.touchdown_ticks if on_ground else 0
+        settled = self.settle_ticks + 1
+        for foot in self.feet:  # spheres already down at reset are settled, not touching down
+            foot.toe_ticks = settled if contact[foot.toe_switch] else 0
+            foot.heel_ticks = settled if contact[foot.heel_switch] else 0
 
     def update(self, state: RobotState) -> None:
         """One tick: attitude from the gyro and accelerometer, velocity predicted from the accelerometer, then
@@ -115,7 +151,9 @@ class KinematicEstimator:
         imu = state.imu
         dt = min(max(imu.stamp - self.stamp, 0.0), MAX_IMU_GAP_S)
         self.stamp = imu.stamp
-        w, x, y, z = self.attitude.update(imu.gyro, imu.accel, imu.stamp)
+        # The attitude's gravity measurement is the specific force less the base's acceleration, the last tick's
+        # change of the velocity estimate (whose slow part is the leg odometry's, free of the attitude's error).
+        w, x, y, z = self.attitude.update(imu.gyro, imu.accel, imu.stamp, self.acceleration)
         gx, gy, gz = self.attitude.angvel  # bias removed
         ax, ay, az = imu.accel.tolist()
         r00, r01, r02 = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
@@ -133,12 +171,13 @@ class KinematicEstimator:
         contact = state.contacts.contact.tolist()
         kin = self.kin
         kinematics_done = False
+        settle_ticks, touchdown_variance = self.settle_ticks, self.touchdown_variance
         for foot in self.feet:
             toe, heel = contact[foot.toe_switch], contact[foot.heel_switch]
+            foot.toe_ticks = foot.toe_ticks + 1 if toe else 0
+            foot.heel_ticks = foot.heel_ticks + 1 if heel else 0
             if not (toe or heel):
-                foot.ticks_on_ground = 0
                 continue
-            foot.ticks_on_ground += 1
             if not kinematics_done:
                 kin.qpos[self.leg_qpos] = state.joints.q
                 mujoco.mj_kinematics(self.model, kin)
@@ -146,15 +185,28 @@ class KinematicEstimator:
                 self.qvel[self.leg_dofs] = state.joints.qd
                 kinematics_done = True
             # The point at rest: the lowest point of the sphere on the ground, its centre plus its radius along
-            # "down" in the base frame (minus row 2 of R); both spheres on the ground: their midpoint.
+            # "down" in the base frame (minus row 2 of R). Both spheres on the ground: their points averaged with
+            # weights 1 / variance (a sphere that has just landed counts little next to a settled one), and the
+            # smaller variance: the two share the joints' errors, so together they are no better than the better.
+            if toe:
+                toe_variance = touchdown_variance[foot.toe_ticks] if foot.toe_ticks <= settle_ticks \
+                    else self.odometry_variance
+            if heel:
+                heel_variance = touchdown_variance[foot.heel_ticks] if foot.heel_ticks <= settle_ticks \
+                    else self.odometry_variance
             if toe and heel:
                 tx, ty, tz = kin.geom_xpos[foot.toe_geom].tolist()
                 hx, hy, hz = kin.geom_xpos[foot.heel_geom].tolist()
-                radius = 0.5 * (foot.toe_radius + foot.heel_radius)
-                fx, fy, fz = 0.5 * (tx + hx), 0.5 * (ty + hy), 0.5 * (tz + hz)
+                share = heel_variance / (toe_variance + heel_variance)  # the toe's weight
+                radius = foot.heel_radius + share * (foot.toe_radius - foot.heel_radius)
+                fx, fy, fz = hx + share * (tx - hx), hy + share * (ty - hy), hz + share * (tz - hz)
+                measurement_variance = min(toe_variance, heel_variance)
+            elif toe:
+                fx, fy, fz = kin.geom_xpos[foot.toe_geom].tolist()
+                radius, measurement_variance = foot.toe_radius, toe_variance
             else:
-                geom, radius = (foot.toe_geom, foot.toe_radius) if toe else (foot.heel_geom, foot.heel_radius)
-                fx, fy, fz = kin.geom_xpos[geom].tolist()
+                fx, fy, fz = kin.geom_xpos[foot.heel_geom].tolist()
+                radius, measurement_variance = foot.heel_radius, heel_variance
             fx, fy, fz = fx - radius * r20, fy - radius * r21, fz - radius * r22
             point = self.point
             point[0], point[1], point[2] = fx, fy, fz
@@ -162,17 +214,20 @@ class KinematicEstimator:
             jx, jy, jz = (self.jacp @ self.qvel).tolist()  # the point's velocity relative to the base
             # Base velocity in the base frame: -(J qd + w x r); then rotated to the world.
             mx, my, mz = -(jx + gy * fz - gz * fy), -(jy + gz * fx - gx * fz), -(jz + gx * fy - gy * fx)
-            measurement_variance = self.odometry_variance if foot.ticks_on_ground > self.touchdown_ticks \
-                else self.touchdown_variance
             gain = variance / (variance + measurement_variance)
             px += gain * (r00 * mx + r01 * my + r02 * mz - px)
             py += gain * (r10 * mx + r11 * my + r12 * mz - py)
             pz += gain * (r20 * mx + r21 * my + r22 * mz - pz)
             variance *= 1.0 - gain
+        if dt > 0.0:
+            vx, vy, vz = self.velocity
+            self.acceleration = ((px - vx) / dt, (py - vy) / dt, (pz - vz) / dt)
         self.velocity = (px, py, pz)
         self.variance = variance
 
     def estimate(self) -> BaseEstimate:
         quat = np.array(self.attitude.quat)
-        return BaseEstimate(quat=quat, linvel=rotate_to_body(quat, np.array(self.velocity)),
-                            angvel=np.array(self.attitude.angvel), euler=euler_of(quat))
+        angvel = np.array(self.attitude.angvel)
+        mujoco.mju_quatIntegrate(quat, angvel, IMU_DELAY_S)  # to the time the state was read (body-frame rate)
+        return BaseEstimate(quat=quat, linvel=rotate_to_body(quat, np.array(self.velocity)), angvel=angvel,
+                            euler=euler_of(quat))
