@@ -2,8 +2,9 @@
 
 1. Control-thread cost: a loop paced to 1 kHz by `runtime.pacing.Pacer` whose body makes fresh copies of five
    10-joint arrays (as the loop passes them) and, with telemetry on, calls `Telemetry.append` every tick and
-   `append_pose` every 20 ticks (sink save= to a temporary .rrd, the MuJoCo mock's model, so the 3-D geometry
-   and poses are sent too). Telemetry off is the same body without the calls. Reported per tick: the telemetry
+   `append_pose` every `Telemetry.pose_decimation` ticks (~30 Hz, as the loop does; sink save= to a temporary
+   .rrd, the MuJoCo mock's model, so the 3-D geometry and poses are sent too). Telemetry off is the same body
+   without the calls (`mock.body_poses()` is called in both). Reported per tick: the telemetry
    calls alone, the whole body, and how late the ticks start. The loop runs on the last allowed CPU, as
    `bruce-run --realtime` does; the telemetry process keeps off that CPU by itself.
 2. Real-time mock session: `runtime.run.run_session` on the mock backend, paced to the wall clock, as
@@ -36,10 +37,9 @@ from runtime.telemetry import Telemetry, parse_sink
 GOAL_US = 5.0
 LATE_SHARE_GOAL = 0.001
 WORK_P99_GOAL_US = 300.0
-POSE_EVERY = 20
 
 
-def paced_loop(config, mock, telemetry: Telemetry | None, ticks: int) -> dict[str, np.ndarray]:
+def paced_loop(config, mock, telemetry: Telemetry | None, ticks: int, pose_every: int) -> dict[str, np.ndarray]:
     """Per-tick µs: the telemetry calls, the whole body, and how late the tick started."""
     joints = np.linspace(-0.5, 0.5, config.n_joints)
     calls, bodies, late = (np.empty(ticks) for _ in range(3))
@@ -53,7 +53,7 @@ def paced_loop(config, mock, telemetry: Telemetry | None, ticks: int) -> dict[st
             behind = pacer.wait()
             t0 = clock()
             q, qd, a, tau_star, tau = (joints.copy() for _ in range(5))
-            poses = mock.body_poses() if tick % POSE_EVERY == 0 else None
+            poses = mock.body_poses() if tick % pose_every == 0 else None
             t1 = clock()
             if telemetry is not None:
                 telemetry.append(tick, tick * config.dt, q, qd, None, None, a, tau_star, tau, 1000.0, 60.0, 0)
@@ -63,7 +63,7 @@ def paced_loop(config, mock, telemetry: Telemetry | None, ticks: int) -> dict[st
             calls[tick], bodies[tick], late[tick] = (t2 - t1) / 1e3, (t2 - t0) / 1e3, behind / 1e3
     finally:
         gc.enable()
-    return {"calls": calls, "bodies": bodies, "late": late}
+    return {"calls": calls, "bodies": bodies, "late": late, "pose": np.arange(ticks) % pose_every == 0}
 
 
 def row(label: str, values: np.ndarray) -> str:
@@ -71,7 +71,7 @@ def row(label: str, values: np.ndarray) -> str:
             f"p99 {np.percentile(values, 99):7.2f}  max {values.max():8.1f}")
 
 
-def control_thread_cost(config, ticks: int) -> None:
+def control_thread_cost(config, ticks: int, pose_every: int | None) -> None:
     allowed = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
     loop_cpu = allowed[-1] if len(allowed) > 1 else None
     mock = make_backend("mock", config)
@@ -79,10 +79,11 @@ def control_thread_cost(config, ticks: int) -> None:
     if loop_cpu is not None:
         os.sched_setaffinity(0, {loop_cpu})  # this thread only; the telemetry process starts from the full set
     try:
-        off = paced_loop(config, mock, None, ticks)
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / "bench.rrd"
-            telemetry = Telemetry(config, parse_sink(f"save={path}"), model=mock.model)
+            telemetry = Telemetry(config, parse_sink(f"save={path}"), model=mock.model, pose_decimation=pose_every)
+            pose_every = telemetry.pose_decimation
+            off = paced_loop(config, mock, None, ticks, pose_every)
             if loop_cpu is not None:
                 os.sched_setaffinity(0, set(allowed))
             started = time.perf_counter()
@@ -90,7 +91,7 @@ def control_thread_cost(config, ticks: int) -> None:
             start_s = time.perf_counter() - started
             if loop_cpu is not None:
                 os.sched_setaffinity(0, {loop_cpu})
-            on = paced_loop(config, mock, telemetry, ticks)
+            on = paced_loop(config, mock, telemetry, ticks, pose_every)
             closing = time.perf_counter()
             telemetry.close()
             close_s = time.perf_counter() - closing
@@ -103,7 +104,9 @@ def control_thread_cost(config, ticks: int) -> None:
           f"{loop_cpu}, telemetry process on the other allowed CPUs")
     print("per tick, µs")
     print(row("off: timer pair only", off["calls"]))
-    print(row("on: append (+ append_pose /20)", on["calls"]))
+    print(row(f"on: append (+ append_pose /{pose_every})", on["calls"]))
+    print(row("on: ticks with append only", on["calls"][~on["pose"]]))
+    print(row("on: ticks with append + append_pose", on["calls"][on["pose"]]))
     print(row("off: loop body (5 array copies)", off["bodies"]))
     print(row("on: loop body + telemetry", on["bodies"]))
     print(row("off: tick start, late by", off["late"]))
@@ -171,12 +174,14 @@ def realtime_figures(config, seconds: float, transfer: str) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--ticks", type=int, default=20_000, help="ticks per measurement of part 1 (1 s per 1000)")
+    parser.add_argument("--pose-every", type=int, default=None,
+                        help="ticks between append_pose calls (default: Telemetry's pose_decimation, ~30 Hz)")
     parser.add_argument("--seconds", type=float, default=20.0, help="length of each real-time session of part 2")
     parser.add_argument("--transfer", choices=("pinn", "direct"), default="pinn",
                         help="the sessions' transfer, as bench_realtime_mock.py (default pinn)")
     args = parser.parse_args()
     config = load_config()
-    control_thread_cost(config, args.ticks)
+    control_thread_cost(config, args.ticks, args.pose_every)
     if args.seconds > 0:
         realtime_figures(config, args.seconds, args.transfer)
 

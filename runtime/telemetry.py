@@ -35,9 +35,10 @@ parent sends the layout, sink and static geometry (a MuJoCo model cannot be pick
 arrays are extracted in the parent, the child does not even import mujoco), the child answers ready (with the
 serve URL) or failed, so `start()` raises TelemetryError naming the sink as before. It ignores
 SIGINT/SIGTERM/SIGHUP (Ctrl-C goes to the whole process group; the parent handles it, then calls close()), keeps
-off the last allowed CPU (where `runtime.realtime` pins the loop) when there are others, and every
-`batch_period_s` drains the rings and sends the rows columnar on its own `RecordingStream`, indexed by a `tick`
-sequence and a `time` duration timeline only (no `log_time`/`log_tick`, on purpose). close() sends stop; the child
+off the last allowed CPU (where `runtime.realtime` pins the loop) when there are others, drains the rings every
+`batch_period_s` (50 ms, so they stay small) and sends what it drained every `chunk_s` (FILE_CHUNK_S = 2 s to a
+file, LIVE_CHUNK_S = 0.2 s to a viewer) columnar on its own `RecordingStream`, indexed by a `tick` sequence and a
+`time` duration timeline only (no `log_time`/`log_tick`, on purpose). close() sends stop; the child
 drains what is left, flushes and disconnects (a save= .rrd gets its footer), reports done and exits; the parent
 waits up to CLOSE_TIMEOUT_S and kills it only if it hangs. If the parent dies without close() (SIGKILL), the child
 sees the socket's EOF (or its parent pid change), sends what it has, flushes and exits; an atexit hook still
@@ -49,27 +50,49 @@ buffers live in the child, so `mlockall(MCL_FUTURE)` in the control process (run
 longer locks them; the parent only maps the rings (a few MB). `dropped` etc. are read live from the child's
 counters.
 
+Size and memory, for runs that last all day. Besides the values, rerun stores a row id and the index columns for
+every row of every entity, writes each chunk (one entity's rows of one send) as an Arrow message with its own
+schema (~2 kB in the file), and for a file's footer keeps a manifest entry per chunk in memory until the file is
+closed. Sending 34 entities at 1 kHz and the poses every 50 ms made ~900 chunks/s: the telemetry process grew
+~75 MB/min (the manifest) and the file ~140 MB/min. Hence: rows go out in chunks of `chunk_s` (~13 chunks/s to a
+file); the joints are one entity each (12 entities per row instead of 34); the safety code and the drop count go
+out only where they change; poses at POSE_HZ (~30 Hz: the loop calls append_pose every `pose_decimation` =
+ceil(loop_hz / POSE_HZ) ticks) and the base trajectory as one segment per chunk. Scalars stay float64: rerun
+rejects other types for them (`rerun rrd verify`). A save= recording starts a new part when the current one
+reaches `max_mb` (DEFAULT_MAX_MB, 1000 MB): PATH, then PATH-stem.001.rrd, .002, ... Each part gets its footer
+when the next begins and carries the blueprint and the static data, so it opens on its own (or all together: one
+recording id); the manifest goes with each part, so memory stays bounded however long the run. The size is read
+after a flush before each chunk, so a part ends at most one chunk and its footer past max_mb. `keep=N` deletes
+all but the newest N parts (disk <= N * max_mb); parts of an earlier recording at the same PATH are deleted at
+start, as PATH itself is overwritten. serve keeps at most `buffer_mb` (DEFAULT_BUFFER_MB, 256 MB) of history for
+viewers that connect late (rerun's default is 1 GiB). Measured figures and the commands: docs/telemetry.md.
+
 Why one `send_record_batch` per batch instead of one `send_columns` per entity: both send the same Arrow chunks,
-but `send_columns` costs ~50 µs of Python per call in rerun 0.41 (45 entities per batch). The record batch
+but `send_columns` costs ~50 µs of Python per call in rerun 0.41 (12 row entities and 11 bodies per chunk). The
+record batch
 carries the same field types and `rerun:*` metadata (copied from a chunk rerun itself builds with
 `Chunk.from_columns`, plus `rerun:entity_path` per field), and rerun splits it into one chunk per entity. Rare
 data (events, the trajectory segment) goes through `send_columns`.
 
-Entity layout (one Scalars entity per quantity per joint, several series per row):
-    joints/<joint>/position   [q, q_hat, a]        q_hat/qd_hat are NaN in rows without a PINN estimate
-    joints/<joint>/velocity   [qd, qd_hat]
-    joints/<joint>/torque     [tau_star, tau]
-    loop/period_us, loop/work_us, safety/state (the int code), telemetry/dropped (running count at send time)
+Entity layout (Scalars with several series per row):
+    joints/<joint>            [q, q_hat, a, qd, qd_hat, tau_star, tau] every tick; q_hat/qd_hat are NaN in rows
+                              without a PINN estimate
+    loop/period_us, loop/work_us   every tick
+    safety/state (the int code), telemetry/dropped (running count at send time): the rows where either changes,
+                              the row before (so the plot steps), and each chunk's first and last rows
     safety/events             TextLog
     world                     ViewCoordinates RIGHT_HAND_Z_UP (static); world/floor: the model's plane as a flat box
     world/robot/<body>        static geoms of the body in its own frame + a Transform3D per pose row (world frame)
-    world/base_trajectory     LineStrips3D, one segment per batch of pose rows; the 3-D view shows all of the past
-A default blueprint (tabs: robot + loop, positions, velocities, torques) is sent once at start. Without a model
-there is no 3-D view and append_pose does nothing.
+    world/base_trajectory     LineStrips3D, one segment per chunk of pose rows; the 3-D view shows all of the past
+A default blueprint (tabs: robot + loop, positions, velocities, torques; each per-joint plot shows its quantity's
+series of joints/<joint> through a SeriesLines.visible_series override, the others stay in its legend) is sent
+at start and with each new part. Without a model there is no 3-D view and append_pose does nothing.
 
-Sinks (`--rerun`): spawn | connect[=ADDR] | serve[=PORT] | save=PATH | off. ADDR is host:port or a full
-rerun+http(s)://host:port/proxy URL (default rerun+http://127.0.0.1:9876/proxy); start() fails at once when
-nothing listens there. `sent_rows` counts rows handed to rerun; a viewer that goes away mid-run loses them unseen.
+Sinks (`--rerun`): spawn | connect[=ADDR] | serve[=PORT][,buffer_mb=MB] | save=PATH[,max_mb=MB][,keep=N] | off; a
+trailing `,key=value` is an option (a comma otherwise stays in the path), max_mb=0 writes one file. ADDR is
+host:port or a full rerun+http(s)://host:port/proxy URL (default rerun+http://127.0.0.1:9876/proxy); start() fails
+at once when nothing listens there. `sent_rows` counts rows handed to rerun; a viewer that goes away mid-run loses
+them unseen.
 """
 
 from __future__ import annotations
@@ -81,6 +104,7 @@ import math
 import mmap
 import os
 import pickle
+import re
 import signal
 import socket
 import subprocess
@@ -101,16 +125,27 @@ if TYPE_CHECKING:
 
     from bruce_hw.config import RobotConfig
 
+DEFAULT_MAX_MB = 1000.0     # save=: a new part starts when the current file reaches this size
+DEFAULT_BUFFER_MB = 256     # serve: history the gRPC server keeps for viewers that connect late
 SINK_HELP = ("where telemetry goes: spawn (a local viewer), connect[=HOST:PORT|URL] (a running viewer), "
-             "serve[=PORT] (a gRPC server a laptop viewer attaches to), save=PATH (an .rrd file), off")
+             "serve[=PORT][,buffer_mb=MB] (a gRPC server a laptop viewer attaches to; keeps the newest MB for late "
+             f"viewers, default {DEFAULT_BUFFER_MB}), save=PATH[,max_mb=MB][,keep=N] (an .rrd file; continues in "
+             f"PATH-stem.001.rrd, .002, ... each time the file reaches MB, default {DEFAULT_MAX_MB:g}, 0: one file; "
+             "keep=N: only the newest N files stay on disk), off")
 SINK_KINDS = ("spawn", "connect", "serve", "save", "off")
-ACCEPTED = "expected one of spawn, connect, connect=HOST:PORT|URL, serve, serve=PORT, save=PATH, off"
+ACCEPTED = ("expected one of spawn, connect, connect=HOST:PORT|URL, serve[=PORT][,buffer_mb=MB], "
+            "save=PATH[,max_mb=MB][,keep=N], off")
+SINK_OPTIONS = {"save": ("max_mb", "keep"), "serve": ("buffer_mb",)}
+OPTION_ITEM = re.compile(r"[A-Za-z_]\w*=")  # a trailing ",key=value" is an option, not part of a path
 DEFAULT_GRPC_PORT = 9876
 DEFAULT_VIEWER_URL = f"rerun+http://127.0.0.1:{DEFAULT_GRPC_PORT}/proxy"  # where rerun connects without ADDR
 VIEWER_PROBE_TIMEOUT_S = 2.0
 EVENT_CAPACITY = 256
 EVENT_TEXT_BYTES = 240
 EVENT_LEVEL_BYTES = 16
+POSE_HZ = 30.0              # 3-D poses (and the base trajectory's points): display rate, not loop rate
+FILE_CHUNK_S = 2.0          # save=: each entity's rows go out in chunks of this many seconds
+LIVE_CHUNK_S = 0.2          # spawn/connect/serve: the viewer's latency (rerun's own batching default)
 GRPC_FLUSH_TIMEOUT_S = 5.0  # close() waits at most this long for an unreachable viewer; a file is always flushed
 START_TIMEOUT_S = 60.0      # a new interpreter importing rerun (~1 s), plus up to ~10 s for a spawned viewer
 CLOSE_TIMEOUT_S = 30.0      # a child stuck in rerun (blocked channel) is killed after this long
@@ -118,13 +153,19 @@ EXIT_TIMEOUT_S = 5.0        # after its last message, for the child's interprete
 TEXT_LEVELS = {"critical": "CRITICAL", "error": "ERROR", "warn": "WARN", "warning": "WARN", "info": "INFO",
                "debug": "DEBUG", "trace": "TRACE"}
 BLUE, ORANGE, GREEN, RED = (31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40)
-SERIES = {  # entity leaf -> (series names, colours), in the column order of each row
-    "position": (["q", "q_hat", "a"], [BLUE, ORANGE, GREEN]),
-    "velocity": (["qd", "qd_hat"], [BLUE, ORANGE]),
-    "torque": (["tau_star", "tau"], [RED, BLUE]),
+# One entity per joint, joints/<joint>, with these series in this order; ROW_ORDER picks them from the row blocks
+# (q, qd, q_hat, qd_hat, a, tau_star, tau). One entity instead of three (position, velocity, torque) because
+# rerun stores a row id and the index columns per entity and row: at 1 kHz that overhead outweighed the values.
+JOINT_SERIES = ("q", "q_hat", "a", "qd", "qd_hat", "tau_star", "tau")
+JOINT_COLOURS = (BLUE, ORANGE, GREEN, BLUE, ORANGE, RED, BLUE)
+ROW_ORDER = (0, 2, 4, 1, 3, 5, 6)
+QUANTITIES = {  # the blueprint's per-joint plots: which of JOINT_SERIES each shows (SeriesLines.visible_series)
+    "position": [name in ("q", "q_hat", "a") for name in JOINT_SERIES],
+    "velocity": [name in ("qd", "qd_hat") for name in JOINT_SERIES],
+    "torque": [name in ("tau_star", "tau") for name in JOINT_SERIES],
 }
-LOOP_SERIES = {"loop/period_us": "period", "loop/work_us": "work", "safety/state": "safety code",
-               "telemetry/dropped": "dropped rows"}
+LOOP_SERIES = {"loop/period_us": "period", "loop/work_us": "work"}  # every row
+STEP_SERIES = {"safety/state": "safety code", "telemetry/dropped": "dropped rows"}  # rows where they change
 FLOOR_HALF_SIZE_M = 2.0  # MuJoCo planes of size 0 are infinite; show this much of them
 TRAJECTORY_RADIUS_M = 0.003
 
@@ -148,14 +189,27 @@ class TelemetryError(RuntimeError):
 class RerunSink:
     kind: str
     target: str | None = None  # connect: ADDR (None: rerun's default); serve: PORT (None: 9876); save: PATH
+    max_mb: float | None = None   # save: rotation size (None: DEFAULT_MAX_MB; 0: one file)
+    keep: int | None = None       # save: parts kept on disk (None: all)
+    buffer_mb: int | None = None  # serve: the server's history (None: DEFAULT_BUFFER_MB)
 
     def __str__(self) -> str:
-        return self.kind if self.target is None else f"{self.kind}={self.target}"
+        text = self.kind if self.target is None else f"{self.kind}={self.target}"
+        for key in ("max_mb", "keep", "buffer_mb"):
+            value = getattr(self, key)
+            if value is not None:
+                text += f",{key}={value:g}"
+        return text
 
 
 def parse_sink(text: str) -> RerunSink:
-    """`spawn`, `connect`, `connect=ADDR`, `serve`, `serve=PORT`, `save=PATH` or `off`; ValueError otherwise."""
-    kind, sep, target = text.strip().partition("=")
+    """`spawn`, `connect`, `connect=ADDR`, `serve[=PORT][,buffer_mb=MB]`, `save=PATH[,max_mb=MB][,keep=N]` or
+    `off`; ValueError (one line naming the value or option) otherwise."""
+    parts = text.strip().split(",")
+    n = len(parts)
+    while n > 1 and OPTION_ITEM.match(parts[n - 1]):
+        n -= 1
+    kind, sep, target = ",".join(parts[:n]).partition("=")
     if kind not in SINK_KINDS:
         raise ValueError(f"unknown rerun sink {text!r}: {ACCEPTED}")
     if kind in ("spawn", "off") and sep:
@@ -166,7 +220,39 @@ def parse_sink(text: str) -> RerunSink:
         raise ValueError(f"rerun sink {text!r} needs a file, save=PATH: {ACCEPTED}")
     if kind == "serve" and sep and not (target.isdigit() and 0 < int(target) < 65536):
         raise ValueError(f"rerun sink {text!r}: the port must be an integer in 1..65535: {ACCEPTED}")
-    return RerunSink(kind, target if sep else None)
+    options: dict[str, float | int] = {}
+    for item in parts[n:]:
+        key, _, value = item.partition("=")
+        allowed = SINK_OPTIONS.get(kind, ())
+        if key not in allowed:
+            takes = f"{kind} takes " + (", ".join(f"{k}=" for k in allowed) if allowed else "no options")
+            raise ValueError(f"rerun sink {text!r}: unknown option {key!r} ({takes}): {ACCEPTED}")
+        if key in options:
+            raise ValueError(f"rerun sink {text!r}: option {key} given twice")
+        options[key] = _sink_option(text, key, value)
+    if options.get("keep") is not None and options.get("max_mb") == 0:
+        raise ValueError(f"rerun sink {text!r}: keep= needs rotation, but max_mb=0 writes one file")
+    return RerunSink(kind, target if sep else None, **options)
+
+
+def _sink_option(text: str, key: str, value: str) -> float | int:
+    """One option's value, checked; ValueError naming the option otherwise."""
+    wants = {"max_mb": "a number of megabytes >= 0 (0: one file, never rotated)",
+             "keep": "an integer >= 1 (how many of the newest parts stay on disk)",
+             "buffer_mb": "an integer number of megabytes >= 1"}[key]
+    try:
+        number = float(value) if key == "max_mb" else int(value)
+    except ValueError:
+        number = None
+    if number is None or not math.isfinite(number) or number < (0 if key == "max_mb" else 1):
+        raise ValueError(f"rerun sink {text!r}: {key} must be {wants}, got {value!r}")
+    return number
+
+
+def part_path(path: str | Path, part: int) -> Path:
+    """The file of part `part` of a rotated save=PATH recording: PATH itself, then PATH-stem.001.rrd, ..."""
+    path = Path(path)
+    return path if part == 0 else path.with_name(f"{path.stem}.{part:03d}{path.suffix}")
 
 
 def grpc_url(addr: str | None) -> str | None:
@@ -255,18 +341,23 @@ def _picklable(exc: BaseException) -> BaseException:
 
 class Telemetry:
     def __init__(self, config: RobotConfig, sink: RerunSink, *, model: mujoco.MjModel | None = None,
-                 capacity: int = 4096, batch_period_s: float = 0.05, pose_decimation: int = 20,
-                 recording_name: str = "bruce-run"):
+                 capacity: int = 4096, batch_period_s: float = 0.05, chunk_s: float | None = None,
+                 pose_decimation: int | None = None, recording_name: str = "bruce-run"):
         if sink.kind == "off":
             raise ValueError("Telemetry needs a sink other than 'off' (make_telemetry returns None for it)")
-        if capacity < 1 or pose_decimation < 1 or not batch_period_s > 0:
-            raise ValueError("capacity and pose_decimation must be >= 1 and batch_period_s > 0")
+        if pose_decimation is None:
+            pose_decimation = max(1, math.ceil(config.loop_hz / POSE_HZ))
+        if chunk_s is None:
+            chunk_s = FILE_CHUNK_S if sink.kind == "save" else LIVE_CHUNK_S
+        if capacity < 1 or pose_decimation < 1 or not batch_period_s > 0 or not chunk_s >= 0:
+            raise ValueError("capacity and pose_decimation must be >= 1, batch_period_s > 0 and chunk_s >= 0")
         self.config = config
         self.sink = sink
         self.model = model
         self.capacity = capacity
         self.batch_period_s = batch_period_s
-        self.pose_decimation = pose_decimation
+        self.chunk_s = chunk_s
+        self.pose_decimation = pose_decimation  # the loop calls append_pose every this many ticks
         self.recording_name = recording_name
         self.joints = tuple(config.joints)
         self.url: str | None = None  # serve: the URL the gRPC server reported
@@ -452,6 +543,10 @@ class Telemetry:
             path = Path(target).expanduser().absolute()
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)
+                stale = re.compile(re.escape(path.stem) + r"\.\d{3,}" + re.escape(path.suffix))
+                for old in path.parent.iterdir():  # later parts of an earlier recording at PATH, as PATH itself
+                    if stale.fullmatch(old.name) and old.is_file():  # is overwritten
+                        old.unlink()
             except OSError as exc:
                 raise TelemetryError(f"rerun sink {self.sink}: cannot create {path.parent}: {exc}") from exc
             return str(path)
@@ -497,7 +592,9 @@ class Telemetry:
                 "path": path, "size": layout.size, "joints": self.joints, "capacity": self.capacity,
                 "pose_capacity": self._pose_capacity, "geometry": self._geometry, "kind": self.sink.kind,
                 "target": target, "sink": str(self.sink), "recording_name": self.recording_name,
-                "batch_period_s": self.batch_period_s, "parent": os.getpid()})
+                "batch_period_s": self.batch_period_s, "chunk_s": self.chunk_s, "parent": os.getpid(),
+                "max_mb": DEFAULT_MAX_MB if self.sink.max_mb is None else self.sink.max_mb, "keep": self.sink.keep,
+                "buffer_mb": DEFAULT_BUFFER_MB if self.sink.buffer_mb is None else self.sink.buffer_mb})
             reply = self._receive(START_TIMEOUT_S, until=("ready", "failed"))
         finally:
             with contextlib.suppress(FileNotFoundError):
@@ -580,6 +677,36 @@ def _child_main(fd: int) -> None:
     if not orphaned:
         with contextlib.suppress(OSError):
             conn.send(("done",))
+
+
+class _BlueprintSender:
+    """Sends one blueprint to a recording, again for each new part. rerun's `send_blueprint` builds a new
+    blueprint stream per call and never frees it (rerun 0.41: ~1 MB and two threads per call, so a leak per
+    part); this keeps one blueprint stream and logs the blueprint into a fresh memory sink of it per send, which is
+    what `send_blueprint` does inside. If those internals are not there (another rerun version), it falls back to
+    `send_blueprint`."""
+
+    def __init__(self, blueprint, application_id: str):
+        self.blueprint, self.application_id = blueprint, application_id
+        self.stream = None
+
+    def send(self, recording) -> None:
+        try:
+            import rerun_bindings as bindings
+            from rerun.recording_stream import RecordingStream
+
+            if self.stream is None:
+                self.stream = RecordingStream._from_native(bindings.new_blueprint(
+                    application_id=self.application_id, make_default=False, make_thread_default=False,
+                    default_enabled=True))
+            memory = self.stream.memory_recording()
+            self.stream.set_time("blueprint", sequence=0)
+            self.blueprint._log_to_stream(self.stream)
+            send = bindings.send_blueprint
+        except (ImportError, AttributeError, TypeError):
+            recording.send_blueprint(self.blueprint, make_active=True, make_default=True)
+            return
+        send(memory.storage, True, True, recording=recording.to_native())  # make_active, make_default
 
 
 class _RingReader:
@@ -672,7 +799,14 @@ class _Sender:
         self.base_body: int | None = None
         self.last_base: np.ndarray | None = None
         self.row_columns: _EntityColumns | None = None
+        self.step_columns: _EntityColumns | None = None
+        self.last_step: np.ndarray | None = None  # STEP_SERIES' values in the last row sent
         self.pose_columns: _EntityColumns | None = None
+        self.pending_rows: list[np.ndarray] = []   # drained from the rings, not yet sent (one chunk's worth)
+        self.pending_poses: list[np.ndarray] = []
+        self.part = 0                              # save=: the part being written (part_path)
+        self.blueprint: _BlueprintSender | None = None
+        self.max_bytes = spec["max_mb"] * 1e6 if spec["kind"] == "save" else 0.0
 
     # -- start-up ------------------------------------------------------------------------------------------
     def open(self) -> None:
@@ -695,10 +829,12 @@ class _Sender:
 
         self.recording = rr.RecordingStream(spec["recording_name"])
         self._open_sink()
-        self.recording.send_blueprint(self._blueprint(), make_active=True, make_default=True)
+        self.blueprint = _BlueprintSender(self._blueprint(), spec["recording_name"])
+        self.blueprint.send(self.recording)
         self._log_static(rr)
-        row_entities = [f"joints/{name}/{leaf}" for name in self.joints for leaf in SERIES] + list(LOOP_SERIES)
-        self.row_columns = _EntityColumns(rr, rr.Scalars.columns(scalars=[0.0]), row_entities)
+        scalars = rr.Scalars.columns(scalars=[0.0])
+        self.row_columns = _EntityColumns(rr, scalars, [f"joints/{name}" for name in self.joints] + list(LOOP_SERIES))
+        self.step_columns = _EntityColumns(rr, scalars, list(STEP_SERIES))
         if self.bodies:
             sample = rr.Transform3D.columns(translation=[[0.0, 0.0, 0.0]], quaternion=[[0.0, 0.0, 0.0, 1.0]])
             self.pose_columns = _EntityColumns(rr, sample, [f"world/robot/{name}" for _, name in self.bodies])
@@ -710,18 +846,22 @@ class _Sender:
         elif kind == "connect":
             recording.connect_grpc(target)
         elif kind == "serve":
-            self.url = recording.serve_grpc(grpc_port=int(target))
+            self.url = recording.serve_grpc(grpc_port=int(target),
+                                            server_memory_limit=f"{self.spec['buffer_mb']}MB")
         elif kind == "spawn":
             recording.spawn()  # may wait up to ~10 s for the viewer to come up
         else:
             raise TelemetryError(f"rerun sink {self.sink}: unknown kind {kind!r}")
 
     def _blueprint(self):
+        import rerun as rr
         import rerun.blueprint as rrb
 
-        def per_joint(leaf: str):
-            views = [rrb.TimeSeriesView(origin=f"joints/{name}/{leaf}", name=f"{name} {leaf}") for name in self.joints]
-            return rrb.Grid(*views, grid_columns=max(1, math.ceil(len(views) / 2)), name=f"{leaf}s")
+        def per_joint(quantity: str):
+            visible = rr.SeriesLines(visible_series=QUANTITIES[quantity])
+            views = [rrb.TimeSeriesView(origin=f"joints/{name}", name=f"{name} {quantity}",
+                                        overrides={f"joints/{name}": visible}) for name in self.joints]
+            return rrb.Grid(*views, grid_columns=max(1, math.ceil(len(views) / 2)), name=f"{quantity}s")
 
         loop = rrb.Vertical(
             rrb.TimeSeriesView(origin="loop", name="loop timing (µs)"),
@@ -742,9 +882,8 @@ class _Sender:
     def _log_static(self, rr) -> None:
         log = self.recording.log
         for name in self.joints:
-            for leaf, (names, colours) in SERIES.items():
-                log(f"joints/{name}/{leaf}", rr.SeriesLines(names=names, colors=colours), static=True, strict=True)
-        for path, label in LOOP_SERIES.items():
+            log(f"joints/{name}", rr.SeriesLines(names=JOINT_SERIES, colors=JOINT_COLOURS), static=True, strict=True)
+        for path, label in (LOOP_SERIES | STEP_SERIES).items():
             log(path, rr.SeriesLines(names=[label]), static=True, strict=True)
         if self.geometry is not None:
             log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True, strict=True)
@@ -791,11 +930,13 @@ class _Sender:
 
     # -- running -------------------------------------------------------------------------------------------
     def run(self) -> bool:
-        """Send a batch every batch_period_s until stop (False) or until the parent is gone (True); then send
-        what is left, flush and disconnect."""
+        """Drain the rings every batch_period_s and send what was drained every chunk_s, until stop (False) or
+        until the parent is gone (True); then send what is left, flush and disconnect."""
         conn, period, parent = self.conn, self.spec["batch_period_s"], self.spec["parent"]
+        chunk_s = self.spec["chunk_s"]
         orphaned = False
-        deadline = time.monotonic() + period
+        now = time.monotonic()
+        deadline, send_at = now + period, now + chunk_s
         try:
             while True:
                 try:
@@ -809,8 +950,13 @@ class _Sender:
                 if os.getppid() != parent:
                     orphaned = True
                     break
-                self.send_pending()
-                deadline = max(deadline + period, time.monotonic())
+                self.drain()
+                now = time.monotonic()
+                if now >= send_at:
+                    self.send_pending()
+                    send_at = max(send_at + chunk_s, now)
+                deadline = max(deadline + period, now)
+            self.drain()
             self.send_pending()
             self.recording.flush(timeout_sec=1e9 if self.spec["kind"] == "save" else GRPC_FLUSH_TIMEOUT_S)
         except Exception as exc:
@@ -832,19 +978,48 @@ class _Sender:
             with contextlib.suppress(OSError):
                 self.conn.send(("error", _picklable(exc)))
 
-    def send_pending(self) -> None:
-        """Drain all rings and send them; a failure drops (and counts) that batch but never ends the process."""
+    def drain(self) -> None:
+        """Copy what the rings hold into the pending lists (the rings stay small; rerun gets whole chunks);
+        events, rare, go out at once."""
         import rerun as rr
 
         stats = self.stats
         rows, lost = self.rows.take()
         stats[ROWS_READ] = self.rows.read
         stats[ROWS_OVERRUN] += lost
+        if len(rows):
+            self.pending_rows.append(rows)
         poses, lost = self.poses.take()
         stats[POSES_READ] = self.poses.read
         stats[POSES_OVERRUN] += lost
+        if len(poses):
+            self.pending_poses.append(poses)
         events, _ = self.events.take()
-        if len(rows):
+        if len(events):
+            try:
+                self._send_events(rr, events)
+            except Exception as exc:
+                self.note_error(exc, f"sending {len(events)} events failed")
+
+    def send_pending(self) -> None:
+        """Send the drained rows and poses as one chunk per entity, in a new part if the file has reached max_mb
+        (checked before sending, so no part is left without rows); a failure drops (and counts) them but never
+        ends the process."""
+        import rerun as rr
+
+        if not (self.pending_rows or self.pending_poses):
+            return
+        if self.max_bytes and self._part_bytes() >= self.max_bytes:
+            try:
+                self._next_part(rr)
+            except Exception as exc:
+                self.note_error(exc, f"starting part {self.part} failed; the recording goes on in the last file")
+                self.max_bytes = 0.0
+        stats = self.stats
+        rows = np.concatenate(self.pending_rows) if self.pending_rows else None
+        poses = np.concatenate(self.pending_poses) if self.pending_poses else None
+        self.pending_rows, self.pending_poses = [], []
+        if rows is not None:
             try:
                 self._send_rows(rows)
                 stats[ROWS_SENT] += len(rows)
@@ -852,36 +1027,62 @@ class _Sender:
                 stats[ROWS_FAILED] += len(rows)
                 self.note_error(exc, f"sending {len(rows)} rows failed; they count as dropped, later batches "
                                      "are still tried")
-        if len(poses) and self.pose_columns is not None:
+        if poses is not None and self.pose_columns is not None:
             try:
                 self._send_poses(rr, poses)
                 stats[POSES_SENT] += len(poses)
             except Exception as exc:
                 stats[POSES_FAILED] += len(poses)
                 self.note_error(exc, f"sending {len(poses)} poses failed; later batches are still tried")
-        if len(events):
-            try:
-                self._send_events(rr, events)
-            except Exception as exc:
-                self.note_error(exc, f"sending {len(events)} events failed")
+
+    def _part_bytes(self) -> int:
+        """The current part's size on disk, after rerun has written what it has queued (a few ms once a chunk),
+        so a part ends at most one chunk (and its footer) past max_mb."""
+        self.recording.flush(timeout_sec=GRPC_FLUSH_TIMEOUT_S)
+        try:
+            return os.path.getsize(part_path(self.spec["target"], self.part))
+        except OSError:
+            return 0
+
+    def _next_part(self, rr) -> None:
+        """Continue the recording in the next part: the previous file gets its footer when its sink is
+        replaced; each part carries the blueprint and static data, so it opens on its own."""
+        self.part += 1
+        path = part_path(self.spec["target"], self.part)
+        self.recording.save(str(path))
+        self.blueprint.send(self.recording)
+        self._log_static(rr)
+        keep = self.spec["keep"]
+        if keep is not None and self.part >= keep:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(part_path(self.spec["target"], self.part - keep))
+        print(f"telemetry: recording continues in {path}" + (f" (keeping the newest {keep} parts)" if keep else ""),
+              file=sys.stderr, flush=True)
 
     def _send_rows(self, rows: np.ndarray) -> None:
         n, n_joints = len(rows), len(self.joints)
         blocks = rows[:, 2:2 + ROW_BLOCKS * n_joints].reshape(n, ROW_BLOCKS, n_joints)
-        q, qd, q_hat, qd_hat, a, tau_star, tau = (blocks[:, k] for k in range(ROW_BLOCKS))
-        # (row, joint, series): joint j's slice [:, j] is the (n, k) column of its entity.
-        position = np.stack((q, q_hat, a), axis=-1)
-        velocity = np.stack((qd, qd_hat), axis=-1)
-        torque = np.stack((tau_star, tau), axis=-1)
+        per_joint = blocks[:, ROW_ORDER].transpose(0, 2, 1)  # (row, joint, series in JOINT_SERIES order)
+        ticks = rows[:, 0].astype(np.int64)
         out = self.row_columns
-        columns = out.index_arrays(rows[:, 0].astype(np.int64), rows[:, 1])
-        for j in range(n_joints):
-            columns += [out.scalar_lists(position[:, j]), out.scalar_lists(velocity[:, j]),
-                        out.scalar_lists(torque[:, j])]
+        columns = out.index_arrays(ticks, rows[:, 1])
+        columns += [out.scalar_lists(per_joint[:, j]) for j in range(n_joints)]
+        columns += [out.scalar_lists(rows[:, k, None]) for k in (-3, -2)]  # period_us, work_us
+        self.recording.send_record_batch(out.batch(columns))
+
+        # The safety code and the drop count change rarely: a row where either changes, the row before it (so
+        # the plot steps instead of ramping) and the chunk's first and last rows.
         stats = self.stats
         dropped = int(self.ctrl[ROWS_REJECTED] + stats[ROWS_OVERRUN] + stats[ROWS_FAILED])
-        for values in (rows[:, -3], rows[:, -2], rows[:, -1], np.full(n, float(dropped))):
-            columns.append(out.scalar_lists(values[:, None]))
+        step = np.column_stack((rows[:, -1], np.full(n, float(dropped))))
+        previous = step[:1] if self.last_step is None else self.last_step[None]
+        changed = np.any(step != np.vstack((previous, step[:-1])), axis=1)
+        keep = changed | np.roll(changed, -1)
+        keep[[0, -1]] = True
+        self.last_step = step[-1].copy()
+        out = self.step_columns
+        columns = out.index_arrays(ticks[keep], rows[keep, 1])
+        columns += [out.scalar_lists(step[keep, k, None]) for k in range(len(STEP_SERIES))]
         self.recording.send_record_batch(out.batch(columns))
 
     def _send_poses(self, rr, poses: np.ndarray) -> None:

@@ -75,6 +75,50 @@ def test_parse_sink_rejects_junk_naming_the_value(text):
         parse_sink(text)
 
 
+@pytest.mark.parametrize("text, expected", [
+    ("save=run.rrd,max_mb=200", RerunSink("save", "run.rrd", max_mb=200.0)),
+    ("save=run.rrd,max_mb=0.5,keep=3", RerunSink("save", "run.rrd", max_mb=0.5, keep=3)),
+    ("save=run.rrd,max_mb=0", RerunSink("save", "run.rrd", max_mb=0.0)),
+    ("save=a,b.rrd", RerunSink("save", "a,b.rrd")),  # a comma not followed by key= stays in the path
+    ("serve,buffer_mb=64", RerunSink("serve", None, buffer_mb=64)),
+    ("serve=9877,buffer_mb=64", RerunSink("serve", "9877", buffer_mb=64)),
+])
+def test_parse_sink_reads_the_size_options(text, expected):
+    assert parse_sink(text) == expected
+    assert parse_sink(str(expected)) == expected
+
+
+@pytest.mark.parametrize("text, says", [
+    ("save=run.rrd,max_mb=big", "max_mb must be a number of megabytes >= 0"),
+    ("save=run.rrd,max_mb=-1", "max_mb must be"),
+    ("save=run.rrd,max_mb=inf", "max_mb must be"),
+    ("save=run.rrd,keep=0", "keep must be an integer >= 1"),
+    ("save=run.rrd,keep=2.5", "keep must be"),
+    ("save=run.rrd,max_mb=0,keep=2", "keep= needs rotation"),
+    ("save=run.rrd,keep=2,keep=3", "option keep given twice"),
+    ("save=run.rrd,max_MB=3", "unknown option 'max_MB' (save takes max_mb=, keep=)"),
+    ("spawn,max_mb=3", "unknown option 'max_mb' (spawn takes no options)"),
+    ("connect=robot:9876,keep=2", "unknown option 'keep' (connect takes no options)"),
+    ("serve,buffer_mb=0", "buffer_mb must be an integer number of megabytes >= 1"),
+    ("serve=9877,max_mb=5", "unknown option 'max_mb' (serve takes buffer_mb=)"),
+])
+def test_a_bad_option_is_one_line_naming_it(text, says):
+    with pytest.raises(ValueError) as error:
+        parse_sink(text)
+    message = str(error.value)
+    assert says in message and repr(text) in message and "\n" not in message
+
+
+def test_bruce_run_refuses_a_bad_option_before_starting(capsys):
+    from runtime.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["--duration", "1", "--rerun", "save=/nonexistent/run.rrd,max_mb=lots"])
+    assert exit_.value.code == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if "max_mb" in line]
+    assert len(lines) == 1 and "--rerun: rerun sink 'save=/nonexistent/run.rrd,max_mb=lots': max_mb must be" in lines[0]
+
+
 def test_grpc_url_completes_host_port_only():
     assert grpc_url("robot.local:9876") == "rerun+http://robot.local:9876/proxy"
     assert grpc_url("rerun+https://h:1/proxy") == "rerun+https://h:1/proxy"
@@ -120,10 +164,10 @@ def test_rows_appended_faster_than_the_child_drains_are_dropped_oldest_first(con
     assert telemetry.sent_rows >= capacity
 
     knee = config.joints.index("r_knee")
-    positions = rrd_rows(path, "joints/r_knee/position", "Scalars:scalars")
-    assert len(positions) == telemetry.sent_rows
-    assert set(range(total - capacity, total)) <= set(positions)  # the newest rows survive
-    for t, (q, q_hat, a) in positions.items():  # no torn row: every value is the one appended at its tick
+    knee_rows = rrd_rows(path, "joints/r_knee", "Scalars:scalars")
+    assert len(knee_rows) == telemetry.sent_rows
+    assert set(range(total - capacity, total)) <= set(knee_rows)  # the newest rows survive
+    for t, (q, q_hat, a, *_) in knee_rows.items():  # no torn row: every value is the one appended at its tick
         assert q == pytest.approx(t + knee / 100) and a == pytest.approx(t + knee / 100 + 4 / 1000)
         assert math.isnan(q_hat) if t % 2 else q_hat == pytest.approx(t + knee / 100 + 2 / 1000)
     drops = rrd_rows(path, "telemetry/dropped", "Scalars:scalars")
@@ -146,27 +190,27 @@ def test_save_round_trip_with_the_mock_model(config, model, tmp_path):
     assert telemetry.error is None and telemetry.dropped == 0 and telemetry.sent_rows == ticks
 
     paths = rrd_entity_paths(path)
-    expected = {f"joints/{name}/{leaf}" for name in config.joints for leaf in ("position", "velocity", "torque")}
+    expected = {f"joints/{name}" for name in config.joints}
     expected |= {"loop/period_us", "loop/work_us", "safety/state", "safety/events", "telemetry/dropped", "world",
                  "world/floor", "world/base_trajectory", "world/robot/base", "world/robot/r_shank"}
     assert expected <= paths
     assert rrd_timelines(path) == {"tick", "time"}  # send_columns/record batches add no log_time/log_tick
 
     knee = config.joints.index("r_knee")
-    positions = rrd_rows(path, "joints/r_knee/position", "Scalars:scalars")
-    assert sorted(positions) == list(range(ticks))
-    assert positions[7][0] == pytest.approx(7 + knee / 100) and math.isnan(positions[7][1])  # no PINN: NaN
-    assert positions[7][2] == pytest.approx(7 + knee / 100 + 4 / 1000)  # a
-    assert positions[160] == pytest.approx([160 + knee / 100 + k / 1000 for k in (0, 2, 4)])
-    assert rrd_rows(path, "joints/r_knee/torque", "Scalars:scalars")[9] == pytest.approx(
-        [9 + knee / 100 + k / 1000 for k in (5, 6)])
+    knee_rows = rrd_rows(path, "joints/r_knee", "Scalars:scalars")  # q, q_hat, a, qd, qd_hat, tau_star, tau
+    assert sorted(knee_rows) == list(range(ticks))
+    assert knee_rows[7][0] == pytest.approx(7 + knee / 100) and math.isnan(knee_rows[7][1])  # no PINN: NaN
+    assert math.isnan(knee_rows[7][4]) and knee_rows[7][2] == pytest.approx(7 + knee / 100 + 4 / 1000)  # a
+    # appended as q, qd, q_hat, qd_hat, a, tau_star, tau (k = 0..6)
+    assert knee_rows[160] == pytest.approx([160 + knee / 100 + k / 1000 for k in (0, 2, 4, 1, 3, 5, 6)])
     assert rrd_rows(path, "safety/state", "Scalars:scalars")[5] == [2.0]
     assert rrd_rows(path, "safety/events", "TextLog:text") == {200: ["safety: damping: tilt"]}
 
     xpos, xquat = model.body_poses()
     base = rrd_rows(path, "world/robot/base", "Transform3D:translation")
-    assert sorted(base) == list(range(0, ticks, 20))
-    assert base[100][0] == pytest.approx(xpos[1] + [0.1, 0.0, 0.0], abs=1e-6)
+    assert sorted(base) == list(range(0, ticks, telemetry.pose_decimation))
+    t = 3 * telemetry.pose_decimation
+    assert base[t][0] == pytest.approx(xpos[1] + [0.001 * t, 0.0, 0.0], abs=1e-6)
     w, x, y, z = xquat[2]  # rerun stores x, y, z, w
     hip = rrd_rows(path, "world/robot/r_hip_yaw_link", "Transform3D:quaternion")
     assert hip[0][0] == pytest.approx([x, y, z, w], abs=1e-6)
@@ -327,3 +371,132 @@ def test_a_process_leaving_without_close_still_writes_a_complete_file(tmp_path, 
         wait_for_complete_rrd(path)
     assert "loop/period_us" in rrd_entity_paths(path)  # raises if the footer is missing
     assert sorted(rrd_rows(path, "loop/period_us", "Scalars:scalars")) == list(range(100))
+
+
+def append_paced(telemetry, config, ticks: range, per_burst: int = 100, pause_s: float = 0.02) -> None:
+    """Rows in bursts, so the rings never overflow and the chunks stay small (~per_burst rows)."""
+    for tick in ticks:
+        telemetry.append(tick, tick / 1000, *joint_row(config, tick, with_pinn=True))
+        if tick % per_burst == per_burst - 1:
+            time.sleep(pause_s)
+
+
+def child_threads(telemetry) -> int | None:
+    """Threads of the telemetry process (Linux), None where /proc cannot tell."""
+    try:
+        return len(os.listdir(f"/proc/{telemetry._proc.pid}/task"))
+    except OSError:
+        return None
+
+
+def rrd_parts(path) -> list:
+    """The files of a rotated recording at `path`, oldest first: path, path-stem.001.rrd, ..."""
+    parts = sorted(path.parent.glob(f"{path.stem}.[0-9][0-9][0-9]*{path.suffix}"))
+    return ([path] if path.exists() else []) + parts
+
+
+ROTATE_MB = 0.8         # each part also carries ~0.5 MB of blueprint and static data
+ROTATE_SLACK_MB = 1.0   # a part ends one chunk (+ its footer) past max_mb; a busy machine makes chunks bigger
+
+
+def test_rotation_splits_the_recording_into_bounded_parts_that_lose_nothing(config, tmp_path, capfd):
+    path = tmp_path / "run.rrd"
+    (tmp_path / "run.999.rrd").write_text("a part of an earlier recording at this path: removed at start")
+    (tmp_path / "run.notes.rrd").write_text("not a part: kept")
+    total = 3000
+    sink = parse_sink(f"save={path},max_mb={ROTATE_MB}")
+    with Telemetry(config, sink, batch_period_s=0.01, chunk_s=0.05) as telemetry:
+        append_paced(telemetry, config, range(50), per_burst=50, pause_s=0.2)
+        threads = child_threads(telemetry)
+        append_paced(telemetry, config, range(50, total), per_burst=50, pause_s=0.05)
+        threads_after = child_threads(telemetry)
+    assert telemetry.error is None and telemetry.sent_rows == total and telemetry.dropped == 0
+    if threads is not None:  # a new part costs no thread (rerun's send_blueprint left two per call)
+        assert threads_after <= threads + 1, (threads, threads_after)
+
+    parts = rrd_parts(path)
+    assert len(parts) >= 3, parts
+    assert (tmp_path / "run.notes.rrd").exists() and not (tmp_path / "run.999.rrd").exists()
+    seen = []
+    for part in parts:
+        assert part.stat().st_size <= (ROTATE_MB + ROTATE_SLACK_MB) * 1e6, (part, part.stat().st_size)
+        assert {"joints/r_knee", "loop/period_us"} <= rrd_entity_paths(part)  # each part has its own footer
+        from rerun.chunk import RrdReader
+
+        assert RrdReader(part).blueprints(), f"{part.name} opens with the default blueprint"
+        seen += sorted(rrd_rows(part, "joints/r_knee", "Scalars:scalars"))
+    assert seen == list(range(total))  # every row in exactly one part, in order
+    assert capfd.readouterr().err.count("telemetry: recording continues in") == len(parts) - 1
+
+
+def test_keep_bounds_the_disk_to_the_newest_parts(config, tmp_path):
+    path = tmp_path / "run.rrd"
+    total = 3000
+    with Telemetry(config, parse_sink(f"save={path},max_mb={ROTATE_MB},keep=2"), batch_period_s=0.01,
+                   chunk_s=0.05) as telemetry:
+        append_paced(telemetry, config, range(total), per_burst=50, pause_s=0.05)
+    assert telemetry.error is None and telemetry.sent_rows == total
+    parts = rrd_parts(path)
+    assert len(parts) == 2 and not path.exists(), parts  # the oldest parts, PATH itself first, are gone
+    assert sum(p.stat().st_size for p in parts) <= 2 * (ROTATE_MB + ROTATE_SLACK_MB) * 1e6
+    newest = sorted(rrd_rows(parts[-1], "joints/r_knee", "Scalars:scalars"))
+    assert newest[-1] == total - 1  # the newest rows are the ones kept
+
+
+def test_rows_go_out_in_chunks_of_chunk_s_not_one_per_drain(config, tmp_path):
+    """Few, large chunks per entity are what keep the file small and the telemetry process's memory flat
+    (rerun keeps a manifest entry per chunk for the file's footer)."""
+    from rerun.chunk import RrdReader
+
+    path = tmp_path / "chunks.rrd"
+    total, chunk_s = 1500, 0.5
+    with Telemetry(config, parse_sink(f"save={path}"), batch_period_s=0.01, chunk_s=chunk_s) as telemetry:
+        started = time.monotonic()
+        append_paced(telemetry, config, range(total), per_burst=50, pause_s=0.05)  # ~1.5 s, ~150 drains
+        elapsed = time.monotonic() - started
+    assert telemetry.sent_rows == total
+    chunks = [c for c in RrdReader(path).stream() if c.entity_path == "/joints/r_knee" and not c.is_static]
+    assert sum(c.num_rows for c in chunks) == total
+    # One chunk per chunk_s (+ the rest at close), where sending every drain made one per 50-row burst (30).
+    assert len(chunks) <= elapsed / chunk_s + 2, ([c.num_rows for c in chunks], elapsed)
+
+
+def test_safety_state_is_sent_where_it_steps(config, tmp_path):
+    path = tmp_path / "steps.rrd"
+    total = 1000
+    with Telemetry(config, parse_sink(f"save={path}"), batch_period_s=0.01, chunk_s=0.1) as telemetry:
+        for tick in range(total):
+            row = list(joint_row(config, tick, with_pinn=False))
+            row[-1] = 0 if tick < 600 else 2
+            telemetry.append(tick, tick / 1000, *row)
+            if tick % 100 == 99:
+                time.sleep(0.02)
+    assert telemetry.sent_rows == total
+    state = rrd_rows(path, "safety/state", "Scalars:scalars")
+    assert {0, 599, 600, total - 1} <= set(state)  # the step, drawn as one, and both ends
+    assert all(value == [0.0 if tick < 600 else 2.0] for tick, value in state.items())
+    assert len(state) < total / 10  # not every row
+    assert len(rrd_rows(path, "loop/period_us", "Scalars:scalars")) == total  # loop timing: every row
+
+
+def test_a_mock_run_logs_joints_every_tick_and_poses_at_display_rate(config, tmp_path):
+    from runtime.cli import main
+    from runtime.telemetry import FILE_CHUNK_S, POSE_HZ
+
+    path = tmp_path / "walk.rrd"
+    started = time.monotonic()
+    assert main(["--backend", "mock", "--duration", "1", "--controller", "standing", "--rerun", f"save={path}"]) == 0
+    elapsed = time.monotonic() - started
+    knee = rrd_rows(path, "joints/r_knee", "Scalars:scalars")
+    assert len(knee) == config.loop_hz  # 1 s of ticks, every one
+    base = rrd_rows(path, "world/robot/base", "Transform3D:translation")
+    ticks = sorted(base)
+    spacing = set(np.diff(ticks))
+    assert len(spacing) == 1 and config.loop_hz / spacing.pop() <= POSE_HZ  # evenly, at <= 30 Hz
+    assert len(ticks) >= POSE_HZ * 0.8
+    # The base trajectory: few segments (one per chunk) that together pass through every base pose in order.
+    strips = rrd_rows(path, "world/base_trajectory", "LineStrips3D:strips")
+    segments = [np.array(strips[t][0]) for t in sorted(strips)]
+    assert 1 <= len(segments) <= elapsed / FILE_CHUNK_S + 2  # one per chunk (was one per 50 ms)
+    points = np.vstack([segments[0]] + [s[1:] for s in segments[1:]])
+    assert points == pytest.approx(np.array([base[t][0] for t in ticks]), abs=1e-6)
