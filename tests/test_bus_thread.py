@@ -24,6 +24,13 @@ class FakeBus:
         return ("reading", n, command)
 
 
+def cycling(bus: FakeBus, period_s: float, hold_s: float) -> BusThread:
+    thread = BusThread("test-bus", bus.cycle, period_s=period_s, hold_s=hold_s)
+    thread.start()
+    thread.begin(("first", 0, None))
+    return thread
+
+
 def wait_for(predicate, timeout_s: float = 5.0) -> bool:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -54,9 +61,7 @@ def test_a_posted_command_reaches_the_bus_and_its_reading_comes_back():
 
 def test_latest_never_waits_for_a_slow_cycle():
     bus = FakeBus(cycle_s=0.05)
-    thread = BusThread("test-bus", bus.cycle, period_s=0.001, hold_s=1.0)
-    thread.start()
-    thread.begin(("first", 0, None))
+    thread = cycling(bus, period_s=0.001, hold_s=1.0)
     try:
         assert wait_for(lambda: thread.cycles >= 1)
         thread.post("tau")
@@ -73,9 +78,7 @@ def test_the_cycles_stop_when_no_command_comes_for_hold_s():
     """A hung control thread must not keep feeding the motors its last torque: the cycles stop, so the motors'
     own watchdogs see silence."""
     bus = FakeBus()
-    thread = BusThread("test-bus", bus.cycle, period_s=0.001, hold_s=0.02)
-    thread.start()
-    thread.begin(("first", 0, None))
+    thread = cycling(bus, period_s=0.001, hold_s=0.02)
     try:
         thread.post("tau")
         assert wait_for(lambda: thread.idle_waits >= 1)
@@ -91,9 +94,7 @@ def test_the_cycles_stop_when_no_command_comes_for_hold_s():
 
 def test_self_paced_cycles_repeat_the_newest_command_between_posts():
     bus = FakeBus()
-    thread = BusThread("test-bus", bus.cycle, period_s=0.002, hold_s=0.5)
-    thread.start()
-    thread.begin(("first", 0, None))
+    thread = cycling(bus, period_s=0.002, hold_s=0.5)
     try:
         thread.post("tau")
         posted = len(bus.sent)
@@ -105,9 +106,7 @@ def test_self_paced_cycles_repeat_the_newest_command_between_posts():
 
 def test_a_failing_cycle_ends_the_thread_and_is_kept_for_the_control_thread():
     bus = FakeBus(fail_at=3)
-    thread = BusThread("test-bus", bus.cycle, period_s=0.001, hold_s=1.0)
-    thread.start()
-    thread.begin(("first", 0, None))
+    thread = cycling(bus, period_s=0.001, hold_s=1.0)
     thread.post("tau")
     assert wait_for(lambda: thread.error is not None)
     assert isinstance(thread.error, OSError) and "adapter is gone" in str(thread.error)
@@ -117,9 +116,7 @@ def test_a_failing_cycle_ends_the_thread_and_is_kept_for_the_control_thread():
 
 def test_stop_ends_the_thread_after_the_cycle_in_flight():
     bus = FakeBus(cycle_s=0.02)
-    thread = BusThread("test-bus", bus.cycle, period_s=0.001, hold_s=1.0)
-    thread.start()
-    thread.begin(("first", 0, None))
+    thread = cycling(bus, period_s=0.001, hold_s=1.0)
     thread.post("tau")
     assert wait_for(lambda: len(bus.sent) >= 1)
     assert thread.stop(timeout_s=2.0)
