@@ -105,10 +105,13 @@ def test_lockstep_steps_once_per_bulk_cycle_with_a_delay(emulator):
     emulator.send("delay bear 0.002 0.001")
     with BearBus(_port(emulator, "bear"), reply_timeout_s=0.02) as bus:
         bus.bulk_cycle(IDS, None)
-        before = emulator.status()["plant"]["steps"]
+        before = emulator.status()
         _bulk_round_trips(bus, 50)
         time.sleep(0.05)  # the last cycle's step runs after its replies are out
-        assert emulator.status()["plant"]["steps"] - before == 50
+        after = emulator.status()
+        # one step per BULK_COMM the emulator got (a reply later than the timeout on a loaded machine is asked again)
+        cycles = after["bear"]["bulk_comm"] - before["bear"]["bulk_comm"]
+        assert cycles >= 50 and after["plant"]["steps"] - before["plant"]["steps"] == cycles
     emulator.send("delay bear 0")
 
 
