@@ -22,6 +22,7 @@ import argparse
 import contextlib
 import io
 import json
+import os
 import shlex
 import statistics
 import subprocess
@@ -46,6 +47,17 @@ def us(value) -> str:
     return "-" if value is None else f"{value:.0f}"
 
 
+def steal_s() -> float | None:
+    """CPU time the hypervisor took from this machine's virtual CPUs so far (/proc/stat `steal`, all CPUs), None off
+    Linux: on a VM a stolen stretch stops every thread at once, the kernel's tty delivery included."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def session(emulator: EmulatorProcess, seconds: float, cmd: str | None, overrides: list[str]) -> dict:
     """One bruce-run process; its stats with the wall-clock figures this benchmark reports."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -55,11 +67,14 @@ def session(emulator: EmulatorProcess, seconds: float, cmd: str | None, override
                 "--duration", str(seconds), "--rerun", "off", "--stats", str(stats_path)]
         for item in overrides:
             argv += ["--set", item]
+        stolen = steal_s()
         run = subprocess.run(argv, capture_output=True, text=True, timeout=seconds + 120)
+        after = steal_s()
         if not stats_path.exists():
             sys.exit(f"bruce-run failed ({run.returncode}):\n{run.stdout}\n{run.stderr}")
         stats = json.loads(stats_path.read_text())
     stats["returncode"] = run.returncode
+    stats["steal_s"] = None if stolen is None or after is None else after - stolen
     return stats
 
 
@@ -83,6 +98,9 @@ def report(name: str, stats: dict, emulator: EmulatorProcess, no_delay: bool) ->
     print(f"     read p50/p99 {us(read.get('p50'))}/{us(read.get('p99'))} µs; bus thread: {cycle.get('cycles', 0)} "
           f"bulk cycles = {bulk_rate:.0f}/s{goal}, cycle p50/p99/max {us(cycle.get('p50'))}/{us(cycle.get('p99'))}/"
           f"{us(cycle.get('max'))} µs; replies lost {legs.get('replies_lost_total', '?')}")
+    steal = "-" if stats["steal_s"] is None else f"{1e3 * stats['steal_s']:.0f} ms"
+    print(f"     host: {legs.get('host_stalls', '?')} bus reads it was late for (not counted as lost); hypervisor "
+          f"steal during the run {steal}")
     print(f"     data age p50/p99/max {us(stats['data_age_us']['p50'])}/{us(stats['data_age_us']['p99'])}/"
           f"{us(stats['data_age_us']['max'])} µs; base height at the end {plant['base_height']:.3f} m (nominal "
           f"{plant['nominal_base_height']:.3f} m)")

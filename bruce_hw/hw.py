@@ -426,7 +426,8 @@ class BearLegs:
         total = int(self.loss.total.sum())
         return {"bus": self.name, "cycles": self.cycles, "replies_lost": lost, "replies_lost_total": total,
                 "reply_loss_share": total / (self.cycles * len(self.ids)) if self.cycles else 0.0,
-                "watchdog_timeout": self.watchdog_count, "adapter": self.low_latency}
+                "watchdog_timeout": self.watchdog_count, "adapter": self.low_latency,
+                "host_stalls": self.bus.stats.host_stalls if self.bus is not None else 0}
 
     def monitor(self) -> None:
         """Temperatures and voltage of the next BEAR in turn; a BEAR that does not answer is left to the next
@@ -456,7 +457,8 @@ class BearLegs:
         stats = self.bus.stats if self.bus is not None else None
         lost = int(self.loss.total.sum())
         link = "" if stats is None else (f", {lost} replies lost, {stats.retries} retries, "
-                                         f"{stats.rejected_total} bytes/packets rejected")
+                                         f"{stats.rejected_total} bytes/packets rejected, "
+                                         f"{stats.host_stalls} reads the host was late for")
         return f"{self.name}: {self.cycles} bulk cycles in {span:.2f} s ({rate:.0f} Hz){link}"
 
 
@@ -938,8 +940,9 @@ def silence(ids: tuple[int, ...], reading: LegReading, now: float, dt: float, ma
     ages = now - reading.stamps
     stale = np.flatnonzero(ages + dt > max_age_s)
     if stale.size:
-        return (f"no reply from ID(s) {_ids(ids[k] for k in stale)} for {1e3 * float(ages[stale].max()):.1f} "
-                f"ms > safety.max_sensor_age_s {1e3 * max_age_s:.1f} ms")
+        age = float(ages[stale].max())
+        return (f"no reply from ID(s) {_ids(ids[k] for k in stale)} for {1e3 * age:.1f} ms ({1e3 * (age + dt):.1f} ms "
+                f"at the next tick > safety.max_sensor_age_s {1e3 * max_age_s:.1f} ms)")
     return None
 
 

@@ -22,7 +22,9 @@ Choices where the sources are silent or disagree (drivers/emulators/bear.py make
 - The ping reply's data (firmware/hardware version; content undocumented) is returned as raw bytes of any length.
 - Timeouts: all replies of a request must be in within `reply_timeout_s` (2 ms: BRUCE's bulk_timeout, AOS) plus the
   wire time of request and replies at the bus baud rate, and once they have started, each within REPLY_GAP_S of the
-  bytes before it; `tries` = 2 (AOS). A bulk retry is sent only to the motors
+  bytes before it; `tries` = 2 (AOS). Time in which the host did not run the reading thread (a read that returned
+  more than STALL_TOLERANCE_S after its slice: a preempted thread, a paused VM) is not counted against the device:
+  the replies are then still in the kernel's tty path, stalled with us. A bulk retry is sent only to the motors
   that did not answer (their goals are written again; goal writes are idempotent). Serial reads block at most
   `read_slice_s` each, so no call can block for long, whatever the device does. Replies come in request order, so
   once the last ID's reply is in, a missing earlier one is lost and nobody waits for it. The control tick's bulk
@@ -62,6 +64,11 @@ RATED_CURRENT_A = 30.0
 # Longest pause between two replies of one request before the rest counts as lost: the BEARs answer back to back,
 # and a USB adapter in low-latency mode delivers what it holds at least every millisecond.
 REPLY_GAP_S = 0.0015
+# A read returns within its slice plus this much scheduling; a pass that took longer means the host did not run us.
+STALL_TOLERANCE_S = 0.0005
+# Most host time a call does not count against the device: beyond it the readings are too old for any data-age limit
+# (safety.max_sensor_age_s is at most 50 ms), so waiting longer would gain nothing.
+MAX_STALL_CREDIT_S = 0.05
 RATED_LIMITS = {"limit_i_max": RATED_CURRENT_A, "goal_iq": RATED_CURRENT_A, "goal_id": RATED_CURRENT_A}
 
 
@@ -764,9 +771,23 @@ class BearBus:
         self._parser.clear()
         self._parser.expect(length, ids)
         self._send(request)
-        deadline = time.monotonic() + budget
+        last = time.monotonic()
+        deadline, credit = last + budget, MAX_STALL_CREDIT_S
         got: dict[int, StatusPacket] = {}
-        while len(got) < len(ids) and (now := time.monotonic()) < deadline:
+        while len(got) < len(ids):
+            now = time.monotonic()
+            # A pass of this loop takes at most a read slice unless the host did not run this thread (preempted, a
+            # paused VM): the replies that came meanwhile are still on their way through the kernel (the tty's
+            # work item was stalled too), so that time is the host's, not the device's, and does not count against
+            # the reply (up to MAX_STALL_CREDIT_S in all: a call stays bounded).
+            stalled = min(now - last - self.read_slice_s - STALL_TOLERANCE_S, credit)
+            if stalled > 0:
+                deadline += stalled
+                credit -= stalled
+                self.stats.host_stalls += 1
+            last = now
+            if now >= deadline:
+                break
             missing = (len(ids) - len(got)) * per_reply - self._parser.pending
             try:
                 chunk = self._serial.read(max(1, missing))  # returns when `missing` bytes are in or after a slice

@@ -41,6 +41,7 @@ class LinkStats:
     rejected: Counter = field(default_factory=Counter)  # reason -> count ("checksum", "length", "foreign", ...)
     timeouts: int = 0
     retries: int = 0
+    host_stalls: int = 0  # reads this host was late for by more than a slice (not counted against the device)
 
     def reject(self, reason: str) -> None:
         self.rejected[reason] += 1

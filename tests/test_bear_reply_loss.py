@@ -91,3 +91,33 @@ def test_a_reply_whose_data_holds_ff_ff_is_a_sample():
         assert [p.id for p in packets] == [9, 10]
     assert [struct.unpack("<3f", p.data)[2] for p in packets] == [iq, iq]
     assert not parser.stats.rejected_total
+
+
+@pytest.mark.parametrize("stall_s", [0.006, 0.012])
+def test_replies_the_host_was_stalled_for_are_read_not_lost(emulator, stall_s):
+    """The host does not run the reading thread for longer than the whole reply budget (a preempted thread, a paused
+    VM), and the replies reach the tty only after it: they are read, nothing counts as lost, the stall is counted.
+    Real silence after a stall still ends the call: the stall is not the device's time, the rest of the budget is."""
+    with BearBus(emulator.path, reply_timeout_s=0.002) as bus:
+        real_read = bus._serial.read
+        stalls = []
+
+        def stalled_read(n):
+            if not stalls:
+                stalls.append(n)
+                time.sleep(stall_s)
+                return b""  # what a read returns when the kernel's delivery was stalled with it
+            return real_read(n)
+
+        bus._serial.read = stalled_read
+        reply = bus.bulk_cycle(IDS, None, partial=True)
+        assert reply.lost_ids == () and reply.answered is None
+        assert bus.stats.host_stalls == 1 and bus.stats.timeouts == 0
+
+        stalls.clear()
+        emulator.silence(IDS)
+        started = time.monotonic()
+        assert bus.bulk_cycle(IDS, None, partial=True).lost_ids == tuple(IDS)
+        elapsed = time.monotonic() - started
+        assert bus.stats.host_stalls == 2 and bus.stats.timeouts == 1
+        assert stall_s < elapsed < stall_s + bus.cycle_budget_s(10) / bus.tries + 0.05
