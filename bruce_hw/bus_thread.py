@@ -11,7 +11,10 @@ Without a wake-up the thread cycles on its own every `period_s`, resending the n
 idempotent; before the first one, read-only cycles), so a tick that runs late still finds a fresh reading. It does
 that only while the newest command (or the start) is at most `hold_s` old: a control thread that hangs (or a
 process that is frozen) stops the cycles, and the motors' own watchdogs take over, as they do for a killed process.
-An exception in a cycle ends the thread; `error` keeps it for the control thread to raise.
+An exception in a cycle ends the thread; `error` keeps it for the control thread to raise. `halt(reading)`, run on
+this thread after every cycle, may act on a reading that cannot wait for the next tick (the hw backend damps every
+BEAR on an E-stop or a device fault) and return its cause: the thread then ends, with `halted` and `halted_at` set,
+and the reading stays `latest` for the control thread to act on.
 
 Scheduling: the hw backend puts this thread one real-time priority step above the loop (`bruce_hw.io_priority`).
 
@@ -32,9 +35,13 @@ CYCLE_RING = 1 << 16
 
 
 class BusThread:
-    def __init__(self, name: str, cycle: Callable[[Any], Any], *, period_s: float, hold_s: float):
+    def __init__(self, name: str, cycle: Callable[[Any], Any], *, period_s: float, hold_s: float,
+                 halt: Callable[[Any], str | None] | None = None):
         self.name = name
         self._cycle = cycle
+        self._halt = halt
+        self.halted: str | None = None
+        self.halted_at: float | None = None  # time.monotonic() when `halt` acted
         self.period_s = period_s
         self.hold_s = hold_s
         self._latest: Any = None
@@ -124,3 +131,13 @@ class BusThread:
             self._durations[self.cycles % CYCLE_RING] = min((perf() - t0) // 1000, 2**31 - 1)
             self.cycles += 1
             self.last_end = time.monotonic()
+            if self._halt is not None:
+                at = time.monotonic()
+                try:
+                    cause = self._halt(self._latest)
+                except BaseException as exc:
+                    self.error = exc
+                    return
+                if cause is not None:
+                    self.halted, self.halted_at = cause, at
+                    return

@@ -670,6 +670,7 @@ class HwBackend(Backend):
         self.sense = None
         self.sense_port = config.buses.sense.port
         self.fault_stamp: float | None = None  # time.monotonic() when damping was entered
+        self.damped_by_bus_thread = False  # the bus thread damped on the cycle that brought an E-stop or fault
         cpl = config.coupling
         self._b = cpl.joint_from_actuator
         self._tau_q_from_m = cpl.actuator_from_joint.T.copy()  # tau_q = B^-T tau_m
@@ -753,9 +754,19 @@ class HwBackend(Backend):
         self.arms.hold()
 
     def _new_bus_thread(self) -> BusThread:
-        bus = BusThread("hw-legs", self.legs.cycle, period_s=self.config.dt, hold_s=self.max_sensor_age)
+        bus = BusThread("hw-legs", self.legs.cycle, period_s=self.config.dt, hold_s=self.max_sensor_age,
+                        halt=self._damp_on_device_fault)
         bus.start()
         return bus
+
+    def _damp_on_device_fault(self, reading: LegReading) -> str | None:
+        """On the bus thread, right after the cycle that brought it: an E-stop or a device fault damps every actuator
+        at once instead of on the next tick (a tick and a cycle sooner). The control thread then faults on the same
+        reading, with this moment as the fault's time; it damps again (idempotent)."""
+        if not (reading.estop_ids or reading.faults):
+            return None
+        self.legs.damp()
+        return f"E-stop or fault flags on ID(s) {_ids(sorted({*reading.estop_ids, *reading.faults}))}"
 
     def _stop_bus(self) -> None:
         """End the legs' bus thread (after its cycle in flight): the caller owns the port from here."""
@@ -775,7 +786,10 @@ class HwBackend(Backend):
 
     def _on_fault(self) -> None:
         """Damping on every reachable actuator; must not raise (it runs on the error paths)."""
-        self.fault_stamp = time.monotonic()
+        bus = self._bus
+        halted_at = bus.halted_at if bus is not None else None  # the bus thread damped already
+        self.fault_stamp = halted_at if halted_at is not None else time.monotonic()
+        self.damped_by_bus_thread = halted_at is not None
         self._torque = None
         try:
             self._stop_bus()

@@ -123,3 +123,37 @@ def test_stop_ends_the_thread_after_the_cycle_in_flight():
     n = len(bus.sent)
     time.sleep(0.05)
     assert len(bus.sent) == n
+
+
+def test_halt_acts_on_the_cycle_that_brought_the_reading_and_ends_the_thread():
+    bus = FakeBus()
+    acted = []
+
+    def halt(reading):
+        if reading[1] >= 3:  # the third cycle's reading cannot wait for the next tick
+            acted.append((reading, len(bus.sent)))
+            return "E-stop"
+        return None
+
+    thread = BusThread("test-bus", bus.cycle, period_s=0.001, hold_s=1.0, halt=halt)
+    thread.start()
+    before = time.monotonic()
+    thread.begin(("first", 0, None))
+    assert wait_for(lambda: not thread.thread.is_alive())
+    assert thread.halted == "E-stop" and before <= thread.halted_at <= time.monotonic()
+    assert acted == [(("reading", 3, None), 3)]  # on the cycle's own thread, before any further cycle
+    assert thread.latest == ("reading", 3, None) and thread.error is None
+    thread.post("torque")  # the control thread's next write starts nothing
+    time.sleep(0.01)
+    assert len(bus.sent) == 3
+
+
+def test_an_exception_in_halt_is_kept_like_a_failing_cycle():
+    def halt(reading):
+        raise OSError("damping write failed")
+
+    thread = BusThread("test-bus", FakeBus().cycle, period_s=0.001, hold_s=1.0, halt=halt)
+    thread.start()
+    thread.begin(("first", 0, None))
+    assert wait_for(lambda: not thread.thread.is_alive())
+    assert isinstance(thread.error, OSError) and thread.halted is None

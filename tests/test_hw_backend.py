@@ -65,6 +65,12 @@ def test_estop_bit_reaches_damping(emulator, hw_config):
     assert "E-stop" in backend.fault_cause and hw_config.buses.bear.port in backend.fault_cause
     assert 0.0 < backend.fault_stamp - pressed_at < LOOSE_DAMPING_S
     assert summary.ticks < 1000  # stopped at the E-stop, not at the end of the duration
+    # Damped by the bus thread on the cycle that brought the bit, before the control thread's tick saw it.
+    assert backend.damped_by_bus_thread
+    events = [text for _, text in emulator.events() if "torque_enable" in text]
+    assert all(any(f" {i} torque_enable " in t and t.split("->")[1].split()[0] == "3" for t in events)
+               for i in range(1, 11)), events
+    assert emulator.status()["bear"]["torque_enable"] == [3] * 10
     assert summary.exit_code == ExitCode.SAFETY_TRIP and summary.fault_class == "safety"  # as on the mock
 
 
