@@ -34,12 +34,13 @@ import tempfile
 import time
 from pathlib import Path
 
+from stall_witness import Witness
+
 from bruce_hw.backend import BackendError
 from bruce_hw.config import load_config
 from bruce_hw.hw import make_hw_backend
 from drivers.emulators.cli import EmulatorProcess, FaultAt, reply_time
 from runtime.run import run_session
-from stall_witness import Witness
 
 BULK_RATE_GOAL_HZ = 990.0
 TRIP_LOOKBACK_S = 0.06  # a machine stall this close before a trip explains it (the data-age bound is 8 ms)
