@@ -319,6 +319,8 @@ import numpy as np
 from bruce_hw import load_config
 from runtime.telemetry import Telemetry, parse_sink
 
+# Ctrl-C as in a terminal, whatever this test inherited (a job started in the background has SIGINT ignored).
+signal.signal(signal.SIGINT, signal.default_int_handler)
 config = load_config()
 telemetry = Telemetry(config, parse_sink(sys.argv[1]), batch_period_s=60.0)  # nothing is sent before exit
 telemetry.start()
