@@ -9,6 +9,7 @@ import pytest
 
 from drivers.bear import (
     ERROR_OK,
+    MAX_STALL_CREDIT_S,
     RATED_CURRENT_A,
     BearBus,
     StatusParser,
@@ -30,7 +31,9 @@ def emulator():
 
 def test_a_partial_bulk_cycle_marks_the_silent_motors_and_never_retries(emulator):
     emulator.silence([4, 7])
-    with BearBus(emulator.path, reply_timeout_s=0.002) as bus:
+    # The wait is long enough for an emulator thread that a busy machine keeps off the CPU: what is asserted is
+    # which motors are marked and that nobody is asked again, not how long the wait is.
+    with BearBus(emulator.path, reply_timeout_s=0.05) as bus:
         started = time.monotonic()
         reply = bus.bulk_cycle(IDS, "torque", goal_iq=np.zeros(10), partial=True)
         elapsed = time.monotonic() - started
@@ -93,12 +96,13 @@ def test_a_reply_whose_data_holds_ff_ff_is_a_sample():
     assert not parser.stats.rejected_total
 
 
-@pytest.mark.parametrize("stall_s", [0.006, 0.012])
+@pytest.mark.parametrize("stall_s", [0.03, 0.045])
 def test_replies_the_host_was_stalled_for_are_read_not_lost(emulator, stall_s):
     """The host does not run the reading thread for longer than the whole reply budget (a preempted thread, a paused
     VM), and the replies reach the tty only after it: they are read, nothing counts as lost, the stall is counted.
-    Real silence after a stall still ends the call: the stall is not the device's time, the rest of the budget is."""
-    with BearBus(emulator.path, reply_timeout_s=0.002) as bus:
+    Real silence after a stall still ends the call: the stall is not the device's time, the rest of the budget is.
+    (A 20 ms reply wait, shorter than the stalls and room for an emulator thread on a busy machine.)"""
+    with BearBus(emulator.path, reply_timeout_s=0.02) as bus:
         real_read = bus._serial.read
         stalls = []
 
@@ -112,12 +116,32 @@ def test_replies_the_host_was_stalled_for_are_read_not_lost(emulator, stall_s):
         bus._serial.read = stalled_read
         reply = bus.bulk_cycle(IDS, None, partial=True)
         assert reply.lost_ids == () and reply.answered is None
-        assert bus.stats.host_stalls == 1 and bus.stats.timeouts == 0
+        stalled = bus.stats.host_stalls  # ours, and any the busy machine adds
+        assert stalled >= 1 and bus.stats.timeouts == 0
 
         stalls.clear()
         emulator.silence(IDS)
         started = time.monotonic()
         assert bus.bulk_cycle(IDS, None, partial=True).lost_ids == tuple(IDS)
         elapsed = time.monotonic() - started
-        assert bus.stats.host_stalls == 2 and bus.stats.timeouts == 1
+        assert bus.stats.host_stalls > stalled and bus.stats.timeouts == 1
         assert stall_s < elapsed < stall_s + bus.cycle_budget_s(10) / bus.tries + 0.05
+
+
+def test_a_stall_beyond_the_credit_costs_the_replies(emulator):
+    """The host's time is forgiven up to MAX_STALL_CREDIT_S: a call stays bounded, and data that old is stale for
+    any data-age limit anyway."""
+    with BearBus(emulator.path, reply_timeout_s=0.002) as bus:
+        real_read = bus._serial.read
+        stalls = []
+
+        def stalled_read(n):
+            if not stalls:
+                stalls.append(n)
+                time.sleep(MAX_STALL_CREDIT_S + 0.03)
+                return b""
+            return real_read(n)
+
+        bus._serial.read = stalled_read
+        assert bus.bulk_cycle(IDS, None, partial=True).lost_ids == tuple(IDS)
+        assert bus.stats.host_stalls >= 1
