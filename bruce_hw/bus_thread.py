@@ -124,20 +124,19 @@ class BusThread:
             if not self.cycles:
                 self.first_start = time.monotonic()
             try:
-                self._latest = self._cycle(self._command)
+                reading = self._cycle(self._command)
+                # Acted on before it is published: the control thread never sees a reading that halt has yet to
+                # act on.
+                at = time.monotonic()
+                cause = self._halt(reading) if self._halt is not None else None
             except BaseException as exc:  # ends the thread; the control thread raises it on its next read
                 self.error = exc
                 return
+            if cause is not None:
+                self.halted, self.halted_at = cause, at
+            self._latest = reading
             self._durations[self.cycles % CYCLE_RING] = min((perf() - t0) // 1000, 2**31 - 1)
             self.cycles += 1
             self.last_end = time.monotonic()
-            if self._halt is not None:
-                at = time.monotonic()
-                try:
-                    cause = self._halt(self._latest)
-                except BaseException as exc:
-                    self.error = exc
-                    return
-                if cause is not None:
-                    self.halted, self.halted_at = cause, at
-                    return
+            if cause is not None:
+                return

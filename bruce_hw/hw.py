@@ -106,6 +106,9 @@ ARM_PERIOD_S = 0.02           # BRUCE runs its arms at 50 Hz
 # collect_status tests the SDK's packet timeout before reading what arrived meanwhile, so a thread kept off the CPU
 # (or the GIL, e.g. while the runtime compiles its MuJoCo models) past the timeout drops a reply that was there.
 ARM_SILENCE_TO_FAULT_S = 0.3
+# ... and only after this many failed cycles in a row: a thread that could not run (a long collection holding the
+# GIL, a busy machine) fails one cycle, however long it waited; a silent bus fails every cycle of the 0.3 s.
+ARM_FAILED_CYCLES_TO_FAULT = 5
 STANDARD_GRAVITY = 9.80665    # m/s^2: the sense board reports specific force scaled by it (drivers/sense.py)
 # The I/O threads (sense reader, arms, the emulators in a test) must get the GIL within a fraction of
 # safety.max_sensor_age_s; CPython's default switch interval (5 ms) lets a busy thread hold them off that long.
@@ -625,6 +628,7 @@ class ArmHolder:
         start = None
         ramp_t0 = 0.0
         last_good = deadline = time.monotonic()
+        failed_in_row = 0
         while not self._stop.wait(max(0.0, deadline - time.monotonic())):
             deadline = max(deadline + self.period_s, time.monotonic())
             try:
@@ -639,13 +643,15 @@ class ArmHolder:
                 self.q, self.qd = arms.read()
                 self.stamp = last_good = time.monotonic()
                 self.cycles += 1
+                failed_in_row = 0
             except DeviceFault as exc:
                 self.error = self.error or f"arm bus {exc}"
             except Exception as exc:  # DriverError, and whatever a vanished port raises (termios.error, OSError)
                 self.failed_cycles += 1
+                failed_in_row += 1
                 log.debug("arms: %s", exc)
                 silent_s = time.monotonic() - last_good
-                if silent_s > ARM_SILENCE_TO_FAULT_S:
+                if silent_s > ARM_SILENCE_TO_FAULT_S and failed_in_row >= ARM_FAILED_CYCLES_TO_FAULT:
                     self.error = self.error or f"arm bus {exc} (no good cycle for {1e3 * silent_s:.0f} ms)"
 
 

@@ -83,7 +83,9 @@ def test_stopped_imu_stream_reaches_damping(emulator, hw_config):
     assert hw_config.buses.sense.port in backend.fault_cause and "IMU stream stopped" in backend.fault_cause
     latency = backend.fault_stamp - stopped_at
     print(f"IMU stop -> damping: {1e3 * latency:.1f} ms")
-    assert hw_config.safety.max_sensor_age_s < latency < hw_config.safety.max_sensor_age_s + LOOSE_DAMPING_S
+    # Tripped by the data-age bound, not before: the last packet came a few ticks before the stop command at most.
+    age_s = hw_config.safety.max_sensor_age_s
+    assert age_s - 0.005 < latency < age_s + LOOSE_DAMPING_S
 
 
 def test_startup_names_every_missing_device(emulator, hw_config):
