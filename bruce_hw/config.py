@@ -131,6 +131,29 @@ class ModelsConfig:
     # Extra PINN ticks rolled ahead for the Eq. 9 reference (0: the paper's one-step prediction), to cover the
     # actuators' latency: a torque sent now acts that many ticks later.
     pinn_lookahead_ticks: int = 0
+    # The PINN's mean one-step velocity error on the simulator itself (predicted minus simulated qd, rad/s, per
+    # joint; None: not measured), which the residual observer takes off (runtime/transfer_schemes.py).
+    pinn_residual_bias: np.ndarray | None = None
+
+
+TRANSFER_SCHEMES = ("direct", "pinn", "eq9", "shadow", "observer")  # runtime/transfer_schemes.py
+REFERENCE_MODELS = ("pinn", "nominal")                             # runtime/reference_models.py
+
+
+@dataclass(frozen=True, slots=True)
+class TransferConfig:
+    """The transfer stage (`transfer` section, optional): the scheme `bruce-run` uses without --transfer, its
+    reference model and settings, and the gap monitor's (runtime/transfer_schemes.py, runtime/gap_monitor.py)."""
+
+    scheme: str = "direct"
+    reference_model: str = "pinn"
+    delay_margin_s: float = 0.009        # the loop delay the feedback schemes are designed to tolerate ...
+    phase_margin_deg: float = 45.0       # ... with this phase margin left (runtime/transfer_gains.py)
+    shadow_resync_ticks: int = 10
+    observer_time_constant_s: float = 0.2
+    observer_clip: float = 0.25          # share of joints.torque_limits
+    gap_monitor_window_s: float = 0.1
+    gap_monitor_warn_rms: float = 2.0    # rad/s
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,6 +179,7 @@ class RobotConfig:
     models: ModelsConfig
     buses: Buses
     raw: dict
+    transfer: TransferConfig = TransferConfig()
 
     @property
     def n_joints(self) -> int:
@@ -311,6 +335,14 @@ BOUNDS: dict[str, Bound] = {
     "policy.gait_period_s[*][0]": Bound(-2.0, 2.0, "m/s", "vx of a cadence point"),
     "policy.gait_period_s[*][1]": Bound(0.1, 2.0, "s", "a step cycle", low_open=True),
     "pinn.lookahead_ticks": Bound(0, 50, "ticks", "50 ms of actuator latency", integer=True),
+    "pinn.residual_bias.*": Bound(-1.0, 1.0, "rad/s", "the PINN's mean one-step qd error on the simulator"),
+    "transfer.delay_margin_s": Bound(0.001, 0.05, "s", "loop delay the transfer feedback must tolerate"),
+    "transfer.phase_margin_deg": Bound(10.0, 70.0, "deg", "left at that delay; a PD leads by at most 71.6 deg"),
+    "transfer.shadow.resync_ticks": Bound(1, 1000, "ticks", "shadow horizon: up to 1 s at 1 kHz", integer=True),
+    "transfer.observer.time_constant_s": Bound(0.005, 10.0, "s", "observer settling; at least the delay margin's"),
+    "transfer.observer.clip": Bound(0.0, 1.0, "", "share of joints.torque_limits", low_open=True),
+    "transfer.gap_monitor.window_s": Bound(0.005, 10.0, "s", "RMS window of the one-step residual"),
+    "transfer.gap_monitor.warn_rms": Bound(0.0, 100.0, "rad/s", "window RMS that logs a warning", low_open=True),
     "buses.*.baud": Bound(9600, 12_000_000, "bit/s", "UART rates up to the FTDI's 12 Mbaud", integer=True),
     "buses.bear.ids[*]": Bound(0, 253, "", "BEAR IDs; 254 is broadcast", integer=True),
     "buses.bear.watchdog_s": Bound(0.005, 1.0, "s", "a lost host must end in damping"),
@@ -595,7 +627,7 @@ def _actuators(r: _Reader, can: CanBus) -> tuple[float, float]:
 
 
 _TOP_KEYS = {"name", "mjcf", "rates", "joints", "gains", "actuators", "coupling", "arms", "safety", "policy", "pinn",
-             "buses"}
+             "buses", "transfer"}
 
 _SAFETY_FIELDS = tuple(f.name for f in fields(SafetyConfig))
 
@@ -645,13 +677,61 @@ def _gait_cadence(r: _Reader) -> tuple[tuple[float, float], ...]:
     return tuple(points)
 
 
-def _models(r: _Reader) -> ModelsConfig:
+def _models(r: _Reader, joints: tuple[str, ...]) -> ModelsConfig:
     r.mapping("policy", {"model", "gait_period_s"})
-    pinn = r.mapping("pinn", {"model", "lookahead_ticks"})
+    pinn = r.mapping("pinn", {"model", "lookahead_ticks", "residual_bias"})
     return ModelsConfig(policy=_model_file(r, "policy.model"),
                         gait_period_s=_gait_cadence(r),
                         pinn=_model_file(r, "pinn.model"),
-                        pinn_lookahead_ticks=r.number("pinn.lookahead_ticks") if "lookahead_ticks" in pinn else 0)
+                        pinn_lookahead_ticks=r.number("pinn.lookahead_ticks") if "lookahead_ticks" in pinn else 0,
+                        pinn_residual_bias=r.per_joint("pinn.residual_bias", joints) if "residual_bias" in pinn
+                        else None)
+
+
+def _choice(r: _Reader, key: str, choices: tuple[str, ...]) -> str:
+    value = r.node(key)
+    if value not in choices:
+        raise r.fail(key, f"one of {', '.join(choices)}", value)
+    return value
+
+
+def _transfer(r: _Reader, loop_hz: int) -> TransferConfig:
+    """The optional `transfer` section; every key in it is optional (TransferConfig's defaults)."""
+    if "transfer" not in r.data:
+        return TransferConfig()
+    node = r.mapping("transfer", {"scheme", "reference_model", "delay_margin_s", "phase_margin_deg", "shadow",
+                                  "observer", "gap_monitor"})
+    default = TransferConfig()
+    values = {}
+    if "scheme" in node:
+        values["scheme"] = _choice(r, "transfer.scheme", TRANSFER_SCHEMES)
+    if "reference_model" in node:
+        values["reference_model"] = _choice(r, "transfer.reference_model", REFERENCE_MODELS)
+    for name in ("delay_margin_s", "phase_margin_deg"):
+        if name in node:
+            values[name] = r.number(f"transfer.{name}")
+    delay = values.get("delay_margin_s", default.delay_margin_s)
+    phase = math.radians(values.get("phase_margin_deg", default.phase_margin_deg))
+    shortest = delay / (math.pi / 2 - phase)  # runtime/transfer_gains.py: the integrator's phase margin
+    narrowed = {
+        "observer.time_constant_s": bound_for("transfer.observer.time_constant_s").narrowed(
+            "at least transfer.delay_margin_s / (pi/2 - transfer.phase_margin_deg)", low=shortest),
+        "gap_monitor.window_s": bound_for("transfer.gap_monitor.window_s").narrowed(
+            "at least 5 ticks of rates.loop_hz", low=5.0 / loop_hz),
+    }
+    for section, names in (("shadow", ("resync_ticks",)), ("observer", ("time_constant_s", "clip")),
+                           ("gap_monitor", ("window_s", "warn_rms"))):
+        if section not in node:
+            continue
+        sub = r.mapping(f"transfer.{section}", set(names))
+        for name in names:
+            if name in sub:
+                values[f"{section}_{name}"] = r.number(f"transfer.{section}.{name}",
+                                                       bound=narrowed.get(f"{section}.{name}"))
+    if "observer_time_constant_s" not in values and default.observer_time_constant_s < shortest:
+        raise r.fail("transfer.delay_margin_s", f"a margin that the default transfer.observer.time_constant_s "
+                     f"({default.observer_time_constant_s:g} s) keeps; set that key too", delay)
+    return replace(default, **values)
 
 
 def parse_config(data: Any, path: Path) -> RobotConfig:
@@ -725,9 +805,10 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
         coupling=Coupling(matrix),
         arms=ArmConfig(names=arm_names, lower=arm_lower, upper=arm_upper, hold_pose=hold),
         safety=safety,
-        models=_models(r),
+        models=_models(r, joints),
         buses=buses,
         raw=data,
+        transfer=_transfer(r, loop_hz),
     )
 
 

@@ -61,9 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
     from bruce_hw.config import DEFAULT_CONFIG
     from runtime.commands import COMMAND_LIMITS, COMMAND_UNITS
     from runtime.estimation import ESTIMATORS
-    from runtime.mixing import TRANSFERS
     from runtime.run import CONTROLLERS
     from runtime.telemetry import SINK_HELP
+    from runtime.transfer_schemes import TRANSFERS
 
     p = argparse.ArgumentParser(prog="bruce-run", description=__doc__, epilog=EXIT_CODES_HELP)
     p.add_argument("--backend", choices=BACKENDS, default="mock",
@@ -77,8 +77,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "Ctrl-C)")
     p.add_argument("--realtime", action="store_true",
                    help="pace the loop to the wall clock (default for the mock: as fast as possible)")
-    p.add_argument("--transfer", choices=TRANSFERS, default="direct",
-                   help="direct: Eq. 8 torques alone; pinn: Eq. 9, tracking the PINN's prediction (default: direct)")
+    p.add_argument("--transfer", choices=TRANSFERS, default=None,
+                   help="direct: Eq. 8 torques alone; pinn or eq9: the paper's Eq. 9, tracking the PINN's prediction; "
+                        "shadow: a PD towards the reference model's shadow of the simulator; observer: a slow "
+                        "integrator of the model's one-step residual (runtime/transfer_schemes.py; the model: "
+                        "transfer.reference_model) (default: transfer.scheme in the config, shipped direct)")
     p.add_argument("--controller", choices=CONTROLLERS, default="policy",
                    help="policy: the ONNX walking policy (--policy); teacher: the model-based walking controller; "
                         "standing: the standing controller (default: %(default)s)")
@@ -103,7 +106,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gap-seed", type=seed, default=None, metavar="N",
                    help="seed of the profile's sensor noise (default: the profile's `seed`)")
     p.add_argument("--pinn", type=Path, default=None, metavar="PATH",
-                   help="ONNX PINN for --transfer pinn; default: pinn.model in the config")
+                   help="ONNX PINN of the transfer schemes; default: pinn.model in the config")
     p.add_argument("--rerun", default=None, metavar="SINK",
                    help=SINK_HELP + " (default: spawn with a display, off when headless)")
     p.add_argument("--stats", type=Path, default=None, metavar="PATH",
@@ -154,7 +157,7 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
     def refused(code: ExitCode, text: str, error: str | None) -> int:
         """The end of a run that never reached its session: one line, and the stats."""
         print(f"bruce-run: {text}", file=sys.stderr)
-        summary = RunSummary(backend=args.backend, transfer=args.transfer, error=error)
+        summary = RunSummary(backend=args.backend, transfer=args.transfer or "direct", error=error)
         summary.end(code, text)
         write_stats(summary, args.stats)
         return code
@@ -180,7 +183,7 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
         duration = commands.duration
     try:
         summary = run_session(backend, config, duration=duration, realtime=realtime, stats_path=args.stats,
-                              transfer=args.transfer, policy=args.policy, pinn=args.pinn,
+                              transfer=args.transfer or config.transfer.scheme, policy=args.policy, pinn=args.pinn,
                               rerun=None if sink.kind == "off" else sink, controller_kind=args.controller,
                               estimator=args.estimator, commands=commands, stop=stop)
     except (BackendError, ModelError, TelemetryError, ValueError) as exc:

@@ -2,7 +2,8 @@
 
 Eq. 8 is the nominal low-gain PD on the policy's targets a_t. Eq. 9 adds a high-gain PD towards the PINN's
 prediction of the simulator's next joint state (q^', qd^'), so the robot tracks what the simulator would
-have done under the same tau*. `--transfer direct` sends Eq. 8 alone, `--transfer pinn` sends Eq. 9.
+have done under the same tau*. `--transfer direct` sends Eq. 8 alone, `--transfer pinn` (or `eq9`) sends Eq. 9;
+the other transfer schemes (runtime/transfer_schemes.py) build on these two.
 """
 
 from __future__ import annotations
@@ -10,8 +11,6 @@ from __future__ import annotations
 import numpy as np
 
 from bruce_hw.config import PdGains
-
-TRANSFERS = ("direct", "pinn")
 
 
 def eq8_torque(a: np.ndarray, q: np.ndarray, qd: np.ndarray, gains: PdGains) -> np.ndarray:

@@ -2,9 +2,10 @@
 
 Start-up follows the robot: configure (inactive, reads only) -> load and check the models, warm up their
 sessions -> read the measured pose -> start telemetry -> ask for real-time scheduling -> activate -> loop.
-A tick: read -> safety triggers -> policy (once per policy period on the backend's clock) -> Eq. 8 -> PINN -> Eq. 9 ->
-safety filter -> write -> telemetry. A trip of the safety stage (or SIGINT/SIGTERM) puts the backend into
-its damping state at once and holds it for `safety.damping_hold_s` while still reading; the end of
+A tick: read -> safety triggers -> policy (once per policy period on the backend's clock) -> Eq. 8 -> transfer scheme
+(runtime/transfer_schemes.py: direct, the paper's Eq. 9 on the PINN, ...; with a reference model, the gap monitor
+scores its last prediction) -> safety filter -> write -> telemetry. A trip of the safety stage (or SIGINT/SIGTERM) puts
+the backend into its damping state at once and holds it for `safety.damping_hold_s` while still reading; the end of
 `--duration` shuts the backend down (through damping). The nominal controller is the ONNX policy, the
 model-based walking teacher or the standing controller (`CONTROLLERS`); a command schedule
 (`runtime.commands`) gives it its velocity command on every policy tick. Every exit prints a summary and,
@@ -36,14 +37,16 @@ from bruce_hw.types import GroundTruth, JointCommand, RobotState
 from runtime.commands import COMMAND_AXES
 from runtime.estimation import Estimator, euler_of, make_estimator, tilt_angle, tilt_of
 from runtime.exit import FAULT_CLASSES, NOTHING_ENABLED, ExitCode, StopFlag, StopRequested
+from runtime.gap_monitor import GapMonitor
 from runtime.inference import ModelError, OnnxPinn, OnnxPolicy
 from runtime.loopstats import LoopStats
-from runtime.mixing import TRANSFERS, eq8_torque, eq9_torque
+from runtime.mixing import eq8_torque
 from runtime.pacing import Pacer
 from runtime.policy import ObservationBuilder, PolicyController
 from runtime.realtime import RealtimeGrant, request_realtime
 from runtime.safety import SafetyStage, SafetyState
 from runtime.standing import StandingController
+from runtime.transfer_schemes import TransferScheme, build_scheme
 
 FALL_HEIGHT_FRACTION = 0.6   # fallen when the base is below this share of its nominal standing height
 FALL_TILT_RAD = math.pi / 4  # ... or the base is tilted more than this
@@ -189,6 +192,7 @@ class RunSummary:
     exit_code: int = ExitCode.OK
     fault_class: str | None = None   # input, safety, bus, internal (runtime.exit.ExitCode); None: a normal end
     link: dict | None = None         # the backend's bus figures (hw: cycles, lost replies per ID)
+    gap: GapMonitor | None = None    # the live gap monitor, with a transfer scheme that has a reference model
 
     def end(self, code: ExitCode, cause: str | None = None) -> None:
         """Record how the run ended (the first fault wins)."""
@@ -203,12 +207,14 @@ class RunSummary:
         return self.loop.ticks
 
     def to_json(self) -> dict:
-        out = {k: v for k, v in asdict(self).items() if k not in ("truth", "loop", "realtime_grant")}
+        out = {k: v for k, v in asdict(self).items() if k not in ("truth", "loop", "realtime_grant", "gap")}
         out["exit_code"] = int(self.exit_code)
         out.update(self.loop.to_json())
         out["realtime_grant"] = self.realtime_grant.to_json() if self.realtime_grant else None
         if self.truth is not None:
             out.update(self.truth.to_json())
+        if self.gap is not None:
+            out.update(self.gap.to_json())
         return out
 
     def text(self) -> str:
@@ -233,6 +239,12 @@ class RunSummary:
             lines.append(f"  {legs['bus']}: {legs['cycles']} cycles{timing}, {legs['replies_lost_total']} replies lost "
                          f"({100 * legs['reply_loss_share']:.2f} %)"
                          + (": " + ", ".join(f"ID {i} {n}" for i, n in lost.items()) if lost else ""))
+        if self.gap is not None and self.gap.samples:
+            rms = self.gap.to_json()["gap_residual_rms"]
+            worst = max(rms, key=rms.get)
+            lines.append(f"  gap monitor: one-step velocity residual RMS, worst {worst} {rms[worst]:.3g} rad/s, "
+                         f"median {float(np.median(list(rms.values()))):.3g} rad/s over {self.gap.samples} ticks"
+                         + (f", {self.gap.warnings} warnings" if self.gap.warnings else ""))
         if self.telemetry_dropped:
             lines.append(f"  telemetry: {self.telemetry_dropped} rows dropped (buffer full)")
         cause = f" ({self.stop_cause})" if self.stop_cause else ""
@@ -290,17 +302,12 @@ def build_controller(config: RobotConfig, policy_path: Path | None, kind: str = 
     return PolicyController(config, policy), f"policy {path}"
 
 
-def build_pinn(config: RobotConfig, transfer: str, pinn_path: Path | None) -> OnnxPinn | None:
-    if transfer not in TRANSFERS:
-        raise ValueError(f"unknown transfer {transfer!r} (expected one of {', '.join(TRANSFERS)})")
-    if transfer == "direct":
+def build_gap_monitor(config: RobotConfig, scheme: TransferScheme) -> GapMonitor | None:
+    """The live gap monitor of a scheme that has a reference model (None for direct transfer)."""
+    if scheme.reference is None:
         return None
-    path = pinn_path or config.models.pinn
-    if path is None:
-        raise ModelError(f"--transfer pinn needs a PINN model: pass --pinn PATH or set pinn.model in {config.path}")
-    pinn = OnnxPinn(path, config.n_joints, lookahead=config.models.pinn_lookahead_ticks)
-    pinn.warmup()
-    return pinn
+    return GapMonitor(config.joints, max(1, round(config.transfer.gap_monitor_window_s * config.loop_hz)),
+                      config.transfer.gap_monitor_warn_rms)
 
 
 def target_bounds(config: RobotConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -414,7 +421,9 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         robot = backend.read()
         if backend.ground_truth() is not None:
             summary.truth = GroundTruthLog(nominal_base_height=backend.nominal_base_height)
-        pinn_runner = build_pinn(config, transfer, pinn)
+        scheme = build_scheme(config, transfer, pinn, base_state=backend.ground_truth)
+        summary.gap = build_gap_monitor(config, scheme)
+        pinn_runner = getattr(scheme.reference, "pinn", None)  # checked on the measured pose below
         if estimator is None or isinstance(estimator, str):
             kind = estimator or ("truth" if backend.ground_truth() is not None else "kinematic")
             estimator = make_estimator(kind, backend, config)
@@ -441,8 +450,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
             raise StopRequested(f"{stop.cause} received")
         controller.reset(robot.joints.q)
         estimator.reset(robot)
-        if pinn_runner is not None:
-            pinn_runner.reset()
+        scheme.reset()
         backend.activate()  # the last step before the loop: the first tick's reading is as fresh as it can be
         if grant is not None and grant.scheduler.startswith("SCHED_FIFO"):
             others = [t for t in threading.enumerate() if t is not threading.current_thread()]
@@ -456,7 +464,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         if grant is not None:
             print(f"bruce-run: {grant.text()}", flush=True)
         gc.disable()
-        _loop(backend, config, controller, estimator, commands, pinn_runner, telemetry, summary, stop, duration,
+        _loop(backend, config, controller, estimator, commands, scheme, telemetry, summary, stop, duration,
               realtime, recorder)
         summary.final_state = backend.state.value
         if backend.state is LifecycleState.FAULT:
@@ -501,8 +509,9 @@ def _settle(backend: Backend, summary: RunSummary) -> None:
         else backend.state.value
 
 
-def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimator, commands, pinn, telemetry,
-          summary: RunSummary, stop: StopFlag, duration: float | None, realtime: bool, recorder=None) -> None:
+def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimator, commands, scheme: TransferScheme,
+          telemetry, summary: RunSummary, stop: StopFlag, duration: float | None, realtime: bool,
+          recorder=None) -> None:
     stats = summary.loop
     sections = stats.sections
     h_read, h_policy, h_pinn, h_mix = sections["read"], sections["policy"], sections["pinn"], sections["mixing"]
@@ -515,7 +524,8 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     policy_period_us = round(1e6 / config.policy_hz)
     policy_period = -1
     first_now = None
-    eq8, eq9 = config.eq8, config.eq9
+    eq8 = config.eq8
+    gap = summary.gap
     truth = summary.truth
     poses = telemetry is not None and hasattr(backend, "body_poses")
     pose_every = getattr(telemetry, "pose_decimation", 20)
@@ -526,7 +536,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     late_ns = pacer.late_ns
     pacer.start()
     tick, previous_start, first_start = 0, 0, 0
-    a = q_hat = qd_hat = None
+    a = None
     recorder_stop = None
     standstill = np.zeros(3)
     command = standstill
@@ -567,14 +577,15 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
             t2 = perf()
             tau_star = eq8_torque(a, q, qd, eq8)
             t3 = perf()
-            if pinn is not None:
-                try:
-                    q_hat, qd_hat = pinn.step(q, qd, tau_star)
-                except ModelError as exc:
-                    safety.trip(str(exc))
-                    break
+            if gap is not None:
+                gap.update(scheme.one_step, q, qd)  # last tick's prediction against this tick's measurement
+            try:
+                scheme.predict(a, q, qd, tau_star)
+            except ModelError as exc:
+                safety.trip(str(exc))
+                break
             t4 = perf()
-            tau = tau_star if pinn is None else eq9_torque(tau_star, q_hat, qd_hat, q, qd, eq9)
+            tau = scheme.torque(tau_star, q, qd)
             t5 = perf()
             tau = safety.filter(tau, robot)
             if safety.tripped:
@@ -586,8 +597,8 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
                 recorder_stop = recorder(tick, q, qd, tau)
             if telemetry is not None:
                 elapsed = now - clock0
-                telemetry.append(tick, elapsed, q, qd, q_hat, qd_hat, a, tau_star, tau, (t0 - previous_start) / 1e3,
-                                 (t7 - t0) / 1e3, int(safety.state))
+                telemetry.append(tick, elapsed, q, qd, scheme.q_hat, scheme.qd_hat, a, tau_star, tau,
+                                 (t0 - previous_start) / 1e3, (t7 - t0) / 1e3, int(safety.state))
                 if poses and tick % pose_every == 0:
                     telemetry.append_pose(tick, elapsed, *backend.body_poses())
                 if len(safety.transitions) > events_sent:

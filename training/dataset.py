@@ -45,7 +45,7 @@ from bruce_hw.config import RobotConfig
 FORMAT_VERSION = 1
 STATE_ARRAYS = ("q", "qd", "tau")
 REQUIRED = (*STATE_ARRAYS, "episode", "dt", "metadata")
-HASH_EXCLUDED_SECTIONS = ("buses", "policy", "pinn")
+HASH_EXCLUDED_SECTIONS = ("buses", "policy", "pinn", "transfer")
 # Floors the stds: it only keeps a channel that never changes from dividing by zero. Real channels are far above
 # it (the smallest, the std of the 1 kHz Euler residual of q, is ~1e-5 rad).
 STD_FLOOR = 1e-8

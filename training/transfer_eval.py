@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bruce_hw.config import ConfigError, PdGains, load_config
+from bruce_hw.config import DEFAULT_CONFIG, REFERENCE_MODELS, TRANSFER_SCHEMES, ConfigError, PdGains, load_config
 from bruce_hw.reality_gap import GapError, RealityGap, latency_ticks, load_gap
 from runtime.commands import CommandSchedule
 from runtime.estimation import euler_of
@@ -47,6 +47,10 @@ from training.eval_report import json_safe
 
 MODES = ("direct", "pinn")
 LOOKAHEAD_MODE = "pinn_ahead"  # Eq. 9 with the reference rolled ahead over the gap's latency (not the paper's)
+# A mode is a transfer scheme (runtime.transfer_schemes.TRANSFERS) on the configured reference model, or
+# SCHEME@nominal: the same scheme on the nominal MuJoCo model, its perfect-model control.
+PERFECT_MODEL_SUFFIX = "@nominal"
+MODE_NAMES = {"direct": "direct (Eq. 8)", "pinn": "PINN (Eq. 9)", LOOKAHEAD_MODE: "PINN, look-ahead"}
 DEFAULT_SECONDS = 20.0
 DEFAULT_LATENCIES_MS = (0.0, 2.0, 4.0, 6.0, 8.0, 10.0)
 DEFAULT_GAIN_SCALES = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0)
@@ -84,6 +88,22 @@ class RunSpec:
     eq9_scale: float = 1.0
     config: str | None = None
     lookahead: int = 0
+    overrides: tuple[str, ...] = ()  # KEY=VALUE settings of the robot config (bruce-run's --set), e.g. transfer.*
+
+
+def scheme_of(mode: str) -> tuple[str, str | None]:
+    """(transfer scheme, reference model or None for the configured one) of a mode."""
+    if mode in ("nominal", "direct"):
+        return "direct", None
+    if mode == LOOKAHEAD_MODE:
+        return "pinn", None
+    scheme, _, model = mode.partition("@")
+    return scheme, model or None
+
+
+def mode_label(mode: str) -> str:
+    scheme, model = scheme_of(mode)
+    return MODE_NAMES.get(mode) or (f"{scheme}, perfect model" if model == "nominal" else scheme)
 
 
 @dataclass
@@ -133,7 +153,9 @@ def run_one(spec: RunSpec) -> RunRecord:
     from bruce_hw.mock import MujocoBackend
     from runtime.run import run_session
 
-    config = load_config(spec.config) if spec.config else load_config()
+    scheme, model = scheme_of(spec.mode)
+    overrides = list(spec.overrides) + ([f"transfer.reference_model={model}"] if model else [])
+    config = load_config(spec.config or DEFAULT_CONFIG, overrides)
     if spec.eq9_scale != 1.0:
         config = dataclasses.replace(config, eq9=PdGains(kp=config.eq9.kp * spec.eq9_scale,
                                                          kd=config.eq9.kd * spec.eq9_scale))
@@ -144,7 +166,7 @@ def run_one(spec: RunSpec) -> RunRecord:
     n_ticks = round(spec.seconds * config.loop_hz)
     recorder = _TruthRecorder(backend, n_ticks, config.n_joints)
     summary = run_session(backend, config, duration=spec.seconds, realtime=False,
-                          transfer="pinn" if spec.mode.startswith("pinn") else "direct",
+                          transfer=scheme,
                           controller_kind=spec.controller,
                           estimator=spec.estimator, commands=CommandSchedule.constant(*spec.command),
                           recorder=recorder)
@@ -286,9 +308,13 @@ class TransferSettings:
     jobs: int = 1
     config: str | None = None
     lookahead: int | str | None = "auto"  # ticks, "auto" (the gap's latency), or None: no look-ahead variant
+    schemes: tuple[str, ...] | None = None  # modes to run besides direct (None: Eq. 9 and its look-ahead variant)
+    overrides: tuple[str, ...] = ()
 
     @property
     def modes(self) -> tuple[str, ...]:
+        if self.schemes is not None:
+            return ("direct", *(m for m in self.schemes if m != "direct"))
         return MODES + ((LOOKAHEAD_MODE,) if self.lookahead is not None else ())
 
 
@@ -308,7 +334,7 @@ def _spec(settings: TransferSettings, experiment: Experiment, mode: str, seed: i
         changes["lookahead"] = lookahead_ticks(settings.lookahead, gap)
     return RunSpec(experiment=experiment.name, command=experiment.command, seconds=settings.seconds, mode=mode,
                    gap=None if mode == "nominal" else gap, controller=settings.controller,
-                   estimator=settings.estimator, config=settings.config, **changes)
+                   estimator=settings.estimator, config=settings.config, overrides=settings.overrides, **changes)
 
 
 def _sweep_gap(gap: RealityGap, latency_ms: float) -> RealityGap:
@@ -332,7 +358,7 @@ def plan(settings: TransferSettings) -> list[RunSpec]:
             for seed in settings.sweep_seeds:
                 spec = _spec(settings, tracking, mode, seed, gap=_sweep_gap(settings.gap, latency))
                 specs.append(dataclasses.replace(spec, experiment="sweep_latency"))
-    for scale in settings.gain_scales:
+    for scale in settings.gain_scales if "pinn" in settings.modes else ():
         for seed in settings.sweep_seeds:
             spec = _spec(settings, tracking, "pinn", seed, eq9_scale=scale)
             specs.append(dataclasses.replace(spec, experiment="sweep_gain"))
@@ -394,7 +420,7 @@ def evaluate(settings: TransferSettings, records: list[RunRecord]) -> tuple[dict
                 row[mode]["lookahead_ticks"] = runs[0].spec.lookahead
         sweeps["latency"].append(row)
     direct_at_profile = None
-    for scale in settings.gain_scales:
+    for scale in settings.gain_scales if "pinn" in settings.modes else ():
         runs = [r for r in records if r.spec.experiment == "sweep_gain" and r.spec.eq9_scale == scale]
         metrics = aggregate([run_metrics(r, reference, tracking) for r in runs])
         sweeps["eq9_gain"].append({"scale": scale, "pinn": {"joint_rmse": metrics["joint_rmse"],
@@ -406,6 +432,28 @@ def evaluate(settings: TransferSettings, records: list[RunRecord]) -> tuple[dict
     return report, traces
 
 
+TRACKING_BAR = 0.5  # issue 20's acceptance on the profile: tracking joint RMSE at most this share of direct's ...
+CIRCLE_BAR = 0.6    # ... and the circle's mean radial deviation at most this share, with no fall direct does not have
+
+
+def recommended(report: dict, modes: list[str] | tuple[str, ...]) -> str | None:
+    """Of `modes`, the scheme (not direct, not Eq. 9: the paper's row, not a perfect-model control) that clears the
+    bars on this profile, the best tracking first; None when none does. Needs the tracking and circle experiments."""
+    if "tracking" not in report or "circle" not in report:
+        return None
+    tracking, circle = report["tracking"], report["circle"]
+    passing = []
+    for mode in modes:
+        if mode in ("direct", "pinn", LOOKAHEAD_MODE) or PERFECT_MODEL_SUFFIX in mode:
+            continue
+        ok = (tracking[mode]["joint_rmse"] <= TRACKING_BAR * tracking["direct"]["joint_rmse"]
+              and circle[mode]["mean_radial_deviation"] <= CIRCLE_BAR * circle["direct"]["mean_radial_deviation"]
+              and all(report[e][mode]["falls"] <= report[e]["direct"]["falls"] for e in ("tracking", "circle")))
+        if ok:
+            passing.append((tracking[mode]["joint_rmse"], mode))
+    return min(passing)[1] if passing else None
+
+
 # -- outputs ---------------------------------------------------------------------------------------------------
 def _fmt(value, digits: int = 3) -> str:
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
@@ -415,8 +463,9 @@ def _fmt(value, digits: int = 3) -> str:
 
 def markdown(report: dict, meta: dict) -> str:
     experiments = [entry for name, entry in report.items() if name != "sweeps"]
-    modes = [m for m in ("direct", "pinn", LOOKAHEAD_MODE) if experiments and m in experiments[0]]
-    names = {"direct": "direct (Eq. 8)", "pinn": "PINN (Eq. 9)", LOOKAHEAD_MODE: "PINN, look-ahead"}
+    modes = list(meta.get("modes") or [m for m in ("direct", "pinn", LOOKAHEAD_MODE)
+                                        if experiments and m in experiments[0]])
+    names = {m: mode_label(m) for m in modes}
     ahead = f"; look-ahead: {meta['lookahead']} ticks" if LOOKAHEAD_MODE in modes else ""
     lines = [f"# Transfer rehearsal: gap profile `{meta['gap_name']}`", "",
              f"Controller `{meta['controller']}`, estimator `{meta['estimator']}`, {meta['seconds']:g} s per run, "
@@ -470,9 +519,12 @@ def plot(out: Path, report: dict, traces: dict, joint_names: tuple[str, ...]) ->
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    modes = [m for m in (traces.get("tracking") or next(iter(traces.values()), {})) if m != "nominal"]
+    cycle = ("tab:red", "tab:blue", "tab:green", "tab:orange", "tab:purple", "tab:brown", "tab:pink", "tab:olive")
     colours = {"nominal": "k", "direct": "tab:red", "pinn": "tab:blue", LOOKAHEAD_MODE: "tab:green"}
-    labels = {"nominal": "simulator (nominal)", "direct": "direct (Eq. 8)", "pinn": "PINN (Eq. 9)",
-              LOOKAHEAD_MODE: "PINN, look-ahead"}
+    for mode in modes:
+        colours.setdefault(mode, cycle[len(colours) % len(cycle)])
+    labels = {"nominal": "simulator (nominal)", **{m: mode_label(m) for m in modes}}
     written = []
     if "tracking" in traces:
         fig, axes = plt.subplots(2, 3, figsize=(15, 7.5))
@@ -491,7 +543,7 @@ def plot(out: Path, report: dict, traces: dict, joint_names: tuple[str, ...]) ->
             ax.legend(fontsize=7)
         entry = report["tracking"]
         x = np.arange(len(joint_names))
-        shown = [m for m in ("direct", "pinn", LOOKAHEAD_MODE) if m in entry]
+        shown = [m for m in modes if m in entry]
         width = 0.8 / len(shown)
         for i, mode in enumerate(shown):
             axes[1, 2].bar(x + (i - (len(shown) - 1) / 2) * width, entry[mode]["joint_rmse_per_joint"], width,
@@ -545,7 +597,7 @@ def plot(out: Path, report: dict, traces: dict, joint_names: tuple[str, ...]) ->
         if sweeps.get("eq9_gain"):
             scale = [r["scale"] for r in sweeps["eq9_gain"]]
             gain_ax.plot(scale, [r["pinn"]["joint_rmse"] for r in sweeps["eq9_gain"]], "o-", color=colours["pinn"],
-                         label=labels["pinn"])
+                         label=MODE_NAMES["pinn"])
             if sweeps.get("eq9_gain_direct_reference") is not None:
                 gain_ax.axhline(sweeps["eq9_gain_direct_reference"], color=colours["direct"], ls="--",
                                 label=labels["direct"])
@@ -590,6 +642,12 @@ def add_parser(commands) -> argparse.ArgumentParser:
     p.add_argument("--lookahead", default="auto",
                    help="the look-ahead variant's extra PINN ticks: N, 'auto' (the gap's actuator + sensor latency) "
                         "or 'off' (default: %(default)s)")
+    p.add_argument("--schemes", default=None,
+                   help="comma-separated modes to compare with direct transfer: transfer schemes (direct, pinn = eq9, "
+                        "shadow, observer) and SCHEME@nominal for a scheme's perfect-model control (default: pinn and "
+                        "its look-ahead variant)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="robot config override for every run, e.g. transfer.observer.time_constant_s=0.5 (repeatable)")
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="parallel runs (default: CPU count)")
     p.add_argument("--config", default=None, help="robot config (default: BRUCE's)")
     return p
@@ -620,7 +678,19 @@ def settings_from_args(args) -> TransferSettings:
             raise TransferError(f"--lookahead: expected ticks >= 1, 'auto' or 'off', got {args.lookahead!r}") from None
         if lookahead < 1:
             raise TransferError(f"--lookahead: expected ticks >= 1, 'auto' or 'off', got {args.lookahead!r}")
+    schemes = None
+    if getattr(args, "schemes", None) is not None:
+        schemes = tuple(m.strip() for m in args.schemes.split(",") if m.strip())
+        for mode in schemes:
+            scheme, model = scheme_of(mode)
+            if scheme not in TRANSFER_SCHEMES or model not in (None, *REFERENCE_MODELS):
+                raise TransferError(f"--schemes: {mode!r}: expected SCHEME or SCHEME@MODEL with SCHEME one of "
+                                    f"{', '.join(TRANSFER_SCHEMES)} and MODEL one of {', '.join(REFERENCE_MODELS)}")
+    overrides = tuple(getattr(args, "overrides", None) or ())
+    if overrides:
+        load_config(args.config or DEFAULT_CONFIG, list(overrides))  # a bad --set fails here, naming the key
     return TransferSettings(gap=load_gap(args.gap), gap_name=args.gap, lookahead=lookahead, seeds=seeds,
+                            schemes=schemes, overrides=overrides,
                             seconds=args.seconds,
                             controller=args.controller, estimator=args.estimator, experiments=names,
                             latencies_ms=latencies, gain_scales=scales, sweep_seeds=sweep_seeds,
@@ -643,9 +713,10 @@ def run_transfer(args, argv: list[str]) -> int:
             "lookahead": None if settings.lookahead is None else (
                 f"auto ({lookahead_ticks('auto', settings.gap)})" if settings.lookahead == "auto"
                 else settings.lookahead),
-            "scored_after_s": TRACKING_SKIP_S}
+            "scored_after_s": TRACKING_SKIP_S, "modes": list(settings.modes), "overrides": list(settings.overrides)}
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "transfer.json").write_text(json.dumps(json_safe({"meta": meta, **report}), indent=2) + "\n")
+    document = {"meta": meta, "recommended": recommended(report, settings.modes), **report}
+    (args.out / "transfer.json").write_text(json.dumps(json_safe(document), indent=2) + "\n")
     text = markdown(report, meta)
     (args.out / "transfer.md").write_text(text)
     figures = plot(args.out, report, traces, tuple(config.joints))

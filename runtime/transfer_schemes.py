@@ -1,0 +1,168 @@
+"""The transfer stage of the tick: after Eq. 8 (tau*), before safety. One interface, one scheme per `--transfer`.
+
+A scheme gets the policy's targets a_t, the measured joint state and tau*, asks its reference model (a
+`runtime.reference_models.ReferenceModel`: the PINN, or the nominal MuJoCo model as the perfect-model control) what
+the simulator would do (`predict`: the model work, timed as the loop's `pinn` section) and returns the torque to
+send (`torque`: the mixing). Schemes:
+
+- `direct`: tau*, no model (Eq. 8 alone);
+- `eq9` (also `pinn`): the paper's Eq. 9, tau* + Kp' (q^' - q) + Kd' (qd^' - qd), (q^', qd^') the model's
+  prediction of the next tick from the measured state under tau*, gains `gains.eq9`. Its feedback is nearly
+  nothing: q^' - q ~ qd dt whatever the gap, so it mostly adds Kp' qd dt + Kd' (qd^' - qd);
+- `shadow`: a shadow of the simulator, rolled by the model from its own previous state under the simulator's own
+  Eq. 8 torque on the same a_t, resynchronised to the measured state every `transfer.shadow.resync_ticks`; a PD
+  (gains from the delay margin, `runtime.transfer_gains.pd_gains`) pulls the robot towards the shadow's state
+  at the same tick;
+- `observer`: a residual observer: the model's one-step prediction of qd under tau* is compared with the qd
+  measured a tick later, and a slow integrator of that residual (time constant `transfer.observer.time_constant_s`,
+  gain I / T) is added as torque, clipped to `transfer.observer.clip` x the joint's torque limit. It settles where
+  the robot under tau* + u moves as the model does under tau*: a disturbance observer whose nominal plant is
+  the reference model. Held at zero during the safety stage's torque ramp (the robot then gets less than tau*).
+  The PINN's own mean residual on the simulator (`pinn.residual_bias`, measured with the gap monitor on the
+  nominal mock) is taken off the residual: integrated, a model's bias becomes a posture offset on any robot.
+
+`one_step` is the model's prediction of the next tick's (q, qd) from this tick's measured state (None when the
+scheme made none this tick): the gap monitor's input (`runtime.gap_monitor`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from bruce_hw.config import TRANSFER_SCHEMES as TRANSFERS  # the config validates transfer.scheme against them
+from bruce_hw.config import PdGains, RobotConfig
+from runtime.mixing import eq8_torque, eq9_torque
+from runtime.reference_models import ReferenceModel, build_reference
+from runtime.transfer_gains import joint_inertia, observer_gain, pd_gains
+
+EQ9_ALIASES = ("pinn", "eq9")  # `--transfer pinn` has always meant the paper's Eq. 9
+
+
+class TransferScheme:
+    """Direct transfer (tau* unchanged), and the interface of every scheme."""
+
+    name = "direct"
+
+    def __init__(self, reference: ReferenceModel | None = None):
+        self.reference = reference
+        self.q_hat: np.ndarray | None = None   # the reference state shown beside the measured one (telemetry)
+        self.qd_hat: np.ndarray | None = None
+        self.one_step: tuple[np.ndarray, np.ndarray] | None = None
+
+    def reset(self) -> None:
+        self.q_hat = self.qd_hat = None
+        self.one_step = None
+        if self.reference is not None:
+            self.reference.reset()
+
+    def predict(self, a: np.ndarray, q: np.ndarray, qd: np.ndarray, tau_star: np.ndarray) -> None:
+        """The model work of this tick (none for direct transfer)."""
+
+    def torque(self, tau_star: np.ndarray, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        return tau_star
+
+
+class Eq9Scheme(TransferScheme):
+    """The paper's Eq. 9 on the model's one-step (or look-ahead) prediction under tau*."""
+
+    name = "eq9"
+
+    def __init__(self, reference: ReferenceModel, gains: PdGains, one_step: bool = True):
+        super().__init__(reference)
+        self.gains = gains
+        self._one_step = one_step  # False: the model rolls ahead (pinn.lookahead_ticks), not a one-step prediction
+
+    def predict(self, a, q, qd, tau_star) -> None:
+        self.q_hat, self.qd_hat = self.reference.step(q, qd, tau_star)
+        self.one_step = (self.q_hat, self.qd_hat) if self._one_step else None
+
+    def torque(self, tau_star, q, qd) -> np.ndarray:
+        return eq9_torque(tau_star, self.q_hat, self.qd_hat, q, qd, self.gains)
+
+
+class ShadowScheme(TransferScheme):
+    """A PD towards the simulator's shadow, which the model rolls on from its own state between resynchronisations."""
+
+    name = "shadow"
+
+    def __init__(self, reference: ReferenceModel, gains: PdGains, eq8: PdGains, resync_ticks: int):
+        super().__init__(reference)
+        self.gains, self.eq8, self.resync_ticks = gains, eq8, resync_ticks
+        self._tick = 0
+        self._next: tuple[np.ndarray, np.ndarray] | None = None  # the shadow's state at the coming tick
+
+    def reset(self) -> None:
+        super().reset()
+        self._tick = 0
+        self._next = None
+
+    def predict(self, a, q, qd, tau_star) -> None:
+        resync = self._next is None or self._tick % self.resync_ticks == 0
+        self._tick += 1
+        if resync:
+            self.q_hat, self.qd_hat = q.copy(), qd.copy()
+            tau_shadow = tau_star
+        else:
+            self.q_hat, self.qd_hat = self._next
+            tau_shadow = eq8_torque(a, self.q_hat, self.qd_hat, self.eq8)  # the simulator's own Eq. 8 torque
+        self._next = self.reference.step(self.q_hat, self.qd_hat, tau_shadow)
+        self.one_step = self._next if resync else None
+
+    def torque(self, tau_star, q, qd) -> np.ndarray:
+        return eq9_torque(tau_star, self.q_hat, self.qd_hat, q, qd, self.gains)  # same PD form, margin-derived gains
+
+
+class ObserverScheme(TransferScheme):
+    """tau* + u, u a slow clipped integrator of the one-step velocity residual (model under tau* minus measured)."""
+
+    name = "observer"
+
+    def __init__(self, reference: ReferenceModel, gain: np.ndarray, clip: np.ndarray, hold_ticks: int = 0,
+                 bias: np.ndarray | None = None):
+        super().__init__(reference)
+        self.gain, self.clip, self.hold_ticks = gain, clip, hold_ticks
+        # The model's own mean residual on the simulator (predicted minus simulated qd): not a gap, so not integrated.
+        self.bias = np.zeros_like(gain) if bias is None else bias
+        self.u = np.zeros_like(gain)
+        self._ticks = 0
+
+    def reset(self) -> None:
+        super().reset()
+        self.u = np.zeros_like(self.gain)
+        self._ticks = 0
+
+    def predict(self, a, q, qd, tau_star) -> None:
+        if self.one_step is not None and self._ticks >= self.hold_ticks:
+            residual = self.one_step[1] - qd - self.bias  # > 0: the robot is slower than the model: push more
+            self.u = np.clip(self.u + self.gain * residual, -self.clip, self.clip)
+        self._ticks += 1
+        self.one_step = self.reference.step(q, qd, tau_star)
+        self.q_hat, self.qd_hat = self.one_step
+
+    def torque(self, tau_star, q, qd) -> np.ndarray:
+        return tau_star + self.u
+
+
+def build_scheme(config: RobotConfig, name: str, pinn_path: Path | None = None, base_state=None) -> TransferScheme:
+    """The scheme `name` (TRANSFERS) with its reference model (`transfer.reference_model`; `base_state` gives the
+    nominal model its base state: the backend's ground truth) and its settings from `config.transfer`."""
+    if name not in TRANSFERS:
+        raise ValueError(f"unknown transfer {name!r} (expected one of {', '.join(TRANSFERS)})")
+    if name == "direct":
+        return TransferScheme()
+    settings = config.transfer
+    lookahead = config.models.pinn_lookahead_ticks if name in EQ9_ALIASES else 0
+    reference = build_reference(config, settings.reference_model, pinn_path, base_state or (lambda: None),
+                                lookahead=lookahead, scheme=name)
+    if name in EQ9_ALIASES:
+        return Eq9Scheme(reference, config.eq9, one_step=lookahead == 0)
+    inertia = joint_inertia(config)
+    if name == "shadow":
+        gains = pd_gains(inertia, settings.delay_margin_s, settings.phase_margin_deg)
+        return ShadowScheme(reference, gains, config.eq8, settings.shadow_resync_ticks)
+    bias = config.models.pinn_residual_bias if settings.reference_model == "pinn" else None
+    return ObserverScheme(reference, observer_gain(inertia, settings.observer_time_constant_s),
+                          settings.observer_clip * config.tau_limit,
+                          hold_ticks=round(config.safety.torque_ramp_s * config.loop_hz), bias=bias)
