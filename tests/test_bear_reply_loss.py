@@ -96,6 +96,20 @@ def test_a_reply_whose_data_holds_ff_ff_is_a_sample():
     assert not parser.stats.rejected_total
 
 
+def stall_next_read(bus: BearBus, stall_s: float) -> None:
+    """The bus's next serial read returns nothing after `stall_s`, as when the host ran neither the reading thread
+    nor the kernel's tty delivery for that long; the reads after it are the port's own."""
+    serial_port = bus._serial
+    real_read = type(serial_port).read.__get__(serial_port)
+
+    def stalled_read(n):
+        serial_port.read = real_read
+        time.sleep(stall_s)
+        return b""
+
+    serial_port.read = stalled_read
+
+
 @pytest.mark.parametrize("stall_s", [0.03, 0.045])
 def test_replies_the_host_was_stalled_for_are_read_not_lost(emulator, stall_s):
     """The host does not run the reading thread for longer than the whole reply budget (a preempted thread, a paused
@@ -103,23 +117,13 @@ def test_replies_the_host_was_stalled_for_are_read_not_lost(emulator, stall_s):
     Real silence after a stall still ends the call: the stall is not the device's time, the rest of the budget is.
     (A 20 ms reply wait, shorter than the stalls and room for an emulator thread on a busy machine.)"""
     with BearBus(emulator.path, reply_timeout_s=0.02) as bus:
-        real_read = bus._serial.read
-        stalls = []
-
-        def stalled_read(n):
-            if not stalls:
-                stalls.append(n)
-                time.sleep(stall_s)
-                return b""  # what a read returns when the kernel's delivery was stalled with it
-            return real_read(n)
-
-        bus._serial.read = stalled_read
+        stall_next_read(bus, stall_s)
         reply = bus.bulk_cycle(IDS, None, partial=True)
         assert reply.lost_ids == () and reply.answered is None
         stalled = bus.stats.host_stalls  # ours, and any the busy machine adds
         assert stalled >= 1 and bus.stats.timeouts == 0
 
-        stalls.clear()
+        stall_next_read(bus, stall_s)
         emulator.silence(IDS)
         started = time.monotonic()
         assert bus.bulk_cycle(IDS, None, partial=True).lost_ids == tuple(IDS)
@@ -132,16 +136,6 @@ def test_a_stall_beyond_the_credit_costs_the_replies(emulator):
     """The host's time is forgiven up to MAX_STALL_CREDIT_S: a call stays bounded, and data that old is stale for
     any data-age limit anyway."""
     with BearBus(emulator.path, reply_timeout_s=0.002) as bus:
-        real_read = bus._serial.read
-        stalls = []
-
-        def stalled_read(n):
-            if not stalls:
-                stalls.append(n)
-                time.sleep(MAX_STALL_CREDIT_S + 0.03)
-                return b""
-            return real_read(n)
-
-        bus._serial.read = stalled_read
+        stall_next_read(bus, MAX_STALL_CREDIT_S + 0.03)
         assert bus.bulk_cycle(IDS, None, partial=True).lost_ids == tuple(IDS)
         assert bus.stats.host_stalls >= 1
