@@ -562,6 +562,26 @@ class CanLegs:
 
 
 # -- arms -----------------------------------------------------------------------------------------------------
+class ArmSilence:
+    """When the arm bus counts as lost: no good cycle for ARM_SILENCE_TO_FAULT_S and at least
+    ARM_FAILED_CYCLES_TO_FAULT failed cycles in a row."""
+
+    def __init__(self, now: float):
+        self.last_good = now
+        self.failed_in_row = 0
+
+    def good(self, now: float) -> None:
+        self.last_good, self.failed_in_row = now, 0
+
+    def failed(self, now: float) -> float | None:
+        """Count a failed cycle; the silence so far (s) when the bus counts as lost, else None."""
+        self.failed_in_row += 1
+        silent_s = now - self.last_good
+        if silent_s > ARM_SILENCE_TO_FAULT_S and self.failed_in_row >= ARM_FAILED_CYCLES_TO_FAULT:
+            return silent_s
+        return None
+
+
 class ArmHolder:
     """The arms on their own thread at 50 Hz: a sync read every cycle and, once asked to hold, goal positions
     ramped from the measured pose to arms.hold_pose. A servo error, or no good cycle for `ARM_SILENCE_TO_FAULT_S`,
@@ -627,8 +647,8 @@ class ArmHolder:
         arms, target = self.arms, self.config.arms.hold_pose
         start = None
         ramp_t0 = 0.0
-        last_good = deadline = time.monotonic()
-        failed_in_row = 0
+        silence = ArmSilence(time.monotonic())
+        deadline = time.monotonic()
         while not self._stop.wait(max(0.0, deadline - time.monotonic())):
             deadline = max(deadline + self.period_s, time.monotonic())
             try:
@@ -641,17 +661,16 @@ class ArmHolder:
                     share = min(1.0, (time.monotonic() - ramp_t0) / self.ramp_s) if self.ramp_s > 0 else 1.0
                     arms.write_positions(start + (target - start) * share)
                 self.q, self.qd = arms.read()
-                self.stamp = last_good = time.monotonic()
+                self.stamp = time.monotonic()
+                silence.good(self.stamp)
                 self.cycles += 1
-                failed_in_row = 0
             except DeviceFault as exc:
                 self.error = self.error or f"arm bus {exc}"
             except Exception as exc:  # DriverError, and whatever a vanished port raises (termios.error, OSError)
                 self.failed_cycles += 1
-                failed_in_row += 1
                 log.debug("arms: %s", exc)
-                silent_s = time.monotonic() - last_good
-                if silent_s > ARM_SILENCE_TO_FAULT_S and failed_in_row >= ARM_FAILED_CYCLES_TO_FAULT:
+                silent_s = silence.failed(time.monotonic())
+                if silent_s is not None:
                     self.error = self.error or f"arm bus {exc} (no good cycle for {1e3 * silent_s:.0f} ms)"
 
 
