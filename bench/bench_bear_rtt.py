@@ -30,7 +30,7 @@ import time
 import numpy as np
 
 from drivers.bear import BearBus, Mode
-from drivers.emulators.cli import EmulatorProcess
+from runtime.emulate_cli import EmulatorProcess
 
 MODES = {"floor": (), "plain": (), "lockstep": ("--lockstep",), "realtime": ("--realtime",),
          "realtime+lockstep": ("--realtime", "--lockstep")}
@@ -63,8 +63,8 @@ def _line(case: str, rtt: np.ndarray, lost: int, wall: float) -> str:
 def serve_floor() -> None:
     """The `floor` device: canned replies to whatever comes, from the pty thread, until stdin closes."""
     from drivers.bear import ERROR_OK, encode_status
-    from drivers.emulators.cli import SWITCH_INTERVAL_S
     from drivers.emulators.pty_device import PtyDevice
+    from runtime.emulate_cli import SWITCH_INTERVAL_S
 
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     replies = b"".join(encode_status(i, ERROR_OK, bytes(12)) for i in range(1, 11))

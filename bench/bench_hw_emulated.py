@@ -39,7 +39,7 @@ from stall_witness import Witness
 from bruce_hw.backend import BackendError
 from bruce_hw.config import load_config
 from bruce_hw.hw import make_hw_backend
-from drivers.emulators.cli import EmulatorProcess, FaultAt, reply_time
+from runtime.emulate_cli import EmulatorProcess, FaultAt, reply_time
 from runtime.run import run_session
 
 BULK_RATE_GOAL_HZ = 990.0
@@ -69,11 +69,7 @@ def session(emulator: EmulatorProcess, seconds: float, cmd: str | None, override
     """One bruce-run process; its stats with the wall-clock figures this benchmark reports."""
     with tempfile.TemporaryDirectory() as tmp:
         stats_path = Path(tmp) / "stats.json"
-        controller = ["--cmd", cmd] if cmd else ["--controller", "standing"]
-        argv = [sys.executable, "-m", "runtime.cli", *emulator.command_line[1:], *controller,
-                "--duration", str(seconds), "--rerun", "off", "--stats", str(stats_path)]
-        for item in overrides:
-            argv += ["--set", item]
+        argv = emulator.bruce_run_argv(seconds, stats_path, cmd=cmd, overrides=overrides)
         stolen = steal_s()
         with Witness() as witness:
             started = time.monotonic()

@@ -49,6 +49,7 @@ from bruce_hw.mock import MujocoBackend
 from bruce_hw.reality_gap import load_gap
 from runtime.commands import CommandSchedule
 from runtime.inference import OnnxPinn
+from runtime.observers import EachTick
 from runtime.run import run_session
 
 CASES = ((0.0, 1), (0.02, 1), (0.10, 1), (0.02, 4))  # (skip share p, extra steps k)
@@ -107,7 +108,7 @@ class SkippingMock(MujocoBackend):
 
 
 class Probe:
-    """Records one run: the loop's PINN predictions (a monkeypatch of OnnxPinn.step), q per tick (the recorder),
+    """Records one run: the loop's PINN predictions (a monkeypatch of OnnxPinn.step), q per tick (an observer),
     the shadow PINNs' predictions; with `catch_up`, the loop's PINN itself rolls through missed steps."""
 
     def __init__(self, backend: SkippingMock, pinn_path, n_joints: int, catch_up: bool, shadows: bool):
@@ -143,8 +144,8 @@ class Probe:
             self.shadow_q_hat[name].append(sq)
         return q_hat, qd_hat
 
-    def recorder(self, tick, q, qd, tau):
-        self.q.append(q.copy())
+    def record(self, view):
+        self.q.append(view.q.copy())
 
 
 class Acc:
@@ -209,7 +210,8 @@ def walk(config, gap_name: str, p: float, k: int, transfer: str, seed: int, seco
         with contextlib.redirect_stdout(io.StringIO()):
             summary = run_session(backend, config, duration=seconds / (1.0 + p * k), realtime=False,
                                   transfer="pinn" if pinn_mode else "direct",
-                                  commands=CommandSchedule.constant(*COMMAND), recorder=probe.recorder)
+                                  commands=CommandSchedule.constant(*COMMAND),
+                                  observers=[EachTick(probe.record)])
     finally:
         OnnxPinn.step = ORIGINAL_STEP
     truth = summary.truth

@@ -26,7 +26,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from drivers.emulators.cli import EmulatorProcess
+from runtime.emulate_cli import EmulatorProcess
 
 CASES = (("no loss", 0.0, 0.0), ("1 % dropped", 0.01, 0.0), ("1 % corrupted", 0.0, 0.01),
          ("5 % dropped", 0.05, 0.0), ("5 % corrupted", 0.0, 0.05))
@@ -57,10 +57,8 @@ def stand_lockstep(emulator: EmulatorProcess, seconds: float, overrides: list[st
 def stand(emulator: EmulatorProcess, seconds: float, overrides: list[str]) -> tuple[dict, int]:
     with tempfile.TemporaryDirectory() as tmp:
         stats_path = Path(tmp) / "stats.json"
-        argv = [sys.executable, "-m", "runtime.cli", *emulator.command_line[1:], "--controller", "standing",
-                "--duration", str(seconds), "--rerun", "off", "--stats", str(stats_path),
-                *(w for item in overrides for w in ("--set", item))]
-        run = subprocess.run(argv, capture_output=True, text=True, timeout=seconds + 120)
+        run = subprocess.run(emulator.bruce_run_argv(seconds, stats_path, overrides=overrides), capture_output=True,
+                             text=True, timeout=seconds + 120)
         if not stats_path.exists():
             sys.exit(f"bruce-run wrote no stats ({run.returncode}):\n{run.stdout}\n{run.stderr}")
         return json.loads(stats_path.read_text()), run.returncode

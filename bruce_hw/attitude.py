@@ -17,9 +17,7 @@ import numpy as np
 
 # rad/s of correction per rad of tilt error: a ~3 s time constant, long next to a step (0.1-0.3 s), so the
 # horizontal accelerations of walking and pushes (which |a| barely shows) average out, short next to the
-# drift of a gyro bias (minutes). With 1.0 (a 1 s time constant) walking's sway leaked into the estimate: roll
-# was off by 4 deg on average while the walking policy walked at 0.4 m/s in the mock, and walking on the
-# estimate fell within 10 s; with 0.3 the error was 1.7 deg and that policy walked the 10 s.
+# drift of a gyro bias (minutes); a 1 s constant let walking's sway leak into the roll estimate (docs/walking.md).
 ATTITUDE_GAIN = 0.3
 # 1/s^2, integral of the same error into the gyro bias: poles at -0.04 and -0.26 1/s with the gain above, so a
 # bias is learned in ~30 s without overshoot, and the gait's periodic tilt error does not wind it up. A heading

@@ -102,6 +102,7 @@ class ArmConfig:
     lower: np.ndarray
     upper: np.ndarray
     hold_pose: np.ndarray
+    servo_signs: np.ndarray  # +1 or -1 per arm joint: joint angle = sign x servo angle (how each servo is mounted)
 
 
 @dataclass(frozen=True, slots=True)
@@ -136,7 +137,7 @@ class ModelsConfig:
     pinn_residual_bias: np.ndarray | None = None
 
 
-TRANSFER_SCHEMES = ("direct", "pinn", "eq9", "shadow", "observer")  # runtime/transfer_schemes.py
+TRANSFER_SCHEMES = ("direct", "pinn", "eq9", "shadow", "observer", "twin", "shadow_twin")  # runtime/transfer_schemes.py
 REFERENCE_MODELS = ("pinn", "nominal")                             # runtime/reference_models.py
 
 
@@ -152,6 +153,10 @@ class TransferConfig:
     shadow_resync_ticks: int = 10
     observer_time_constant_s: float = 0.2
     observer_clip: float = 0.25          # share of joints.torque_limits
+    twin_resync_s: float = 2.0           # the nominal twin rolls this long from the robot's state before a resync
+    twin_time_constant_s: float = 2.0    # the twin integral's time constant: gain Kp_eq8 / T per s of offset
+    twin_clip: float = 0.25              # share of joints.torque_limits
+    twin_disturbance_rad: float = 0.3    # a larger offset from the twin is a push, not a gap: resync, not integrated
     gap_monitor_window_s: float = 0.1
     gap_monitor_warn_rms: float = 2.0    # rad/s
 
@@ -316,6 +321,7 @@ BOUNDS: dict[str, Bound] = {
     "coupling.joint_from_actuator[*][*]": Bound(-10.0, 10.0, "", "transmission ratio (BRUCE: 0, ±0.5, ±1)"),
     "arms.position_limits.*[*]": Bound(-_TURN, _TURN, "rad", "a turn either way"),
     "arms.hold_pose.*": Bound(-_TURN, _TURN, "rad", "inside arms.position_limits"),
+    "arms.servo_signs.*": Bound(-1.0, 1.0, "", "+1 or -1: how the servo is mounted", integer=True),
     "safety.damping_kd": Bound(0.0, 5.0, "N·m·s/rad", "> 0 removes energy; more is unstable at 1 kHz",
                                low_open=True),
     "safety.damping_hold_s": Bound(0.0, 60.0, "s", "damping after a trip before release", low_open=True),
@@ -341,6 +347,10 @@ BOUNDS: dict[str, Bound] = {
     "transfer.shadow.resync_ticks": Bound(1, 1000, "ticks", "shadow horizon: up to 1 s at 1 kHz", integer=True),
     "transfer.observer.time_constant_s": Bound(0.005, 10.0, "s", "observer settling; at least the delay margin's"),
     "transfer.observer.clip": Bound(0.0, 1.0, "", "share of joints.torque_limits", low_open=True),
+    "transfer.twin.resync_s": Bound(0.01, 10.0, "s", "twin horizon: from one policy period to a walk's length"),
+    "transfer.twin.time_constant_s": Bound(1.0, 60.0, "s", "twin integral settling; 0.5 s fell (transfer_twin_notes)"),
+    "transfer.twin.clip": Bound(0.0, 1.0, "", "share of joints.torque_limits", low_open=True),
+    "transfer.twin.disturbance_rad": Bound(0.01, 3.0, "rad", "offset from the twin taken as a push"),
     "transfer.gap_monitor.window_s": Bound(0.005, 10.0, "s", "RMS window of the one-step residual"),
     "transfer.gap_monitor.warn_rms": Bound(0.0, 100.0, "rad/s", "window RMS that logs a warning", low_open=True),
     "buses.*.baud": Bound(9600, 12_000_000, "bit/s", "UART rates up to the FTDI's 12 Mbaud", integer=True),
@@ -700,7 +710,7 @@ def _transfer(r: _Reader, loop_hz: int) -> TransferConfig:
     if "transfer" not in r.data:
         return TransferConfig()
     node = r.mapping("transfer", {"scheme", "reference_model", "delay_margin_s", "phase_margin_deg", "shadow",
-                                  "observer", "gap_monitor"})
+                                  "observer", "twin", "gap_monitor"})
     default = TransferConfig()
     values = {}
     if "scheme" in node:
@@ -720,6 +730,7 @@ def _transfer(r: _Reader, loop_hz: int) -> TransferConfig:
             "at least 5 ticks of rates.loop_hz", low=5.0 / loop_hz),
     }
     for section, names in (("shadow", ("resync_ticks",)), ("observer", ("time_constant_s", "clip")),
+                           ("twin", ("resync_s", "time_constant_s", "clip", "disturbance_rad")),
                            ("gap_monitor", ("window_s", "warn_rms"))):
         if section not in node:
             continue
@@ -752,7 +763,7 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
     q_lower, q_upper = _limits(r, "joints.position_limits", joints)
     matrix = _coupling(r, len(joints))
 
-    r.mapping("arms", {"names", "position_limits", "hold_pose"})
+    r.mapping("arms", {"names", "position_limits", "hold_pose", "servo_signs"})
     arm_names = r.names("arms.names")
     clash = set(arm_names) & set(joints)
     if clash:
@@ -760,6 +771,10 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
     arm_lower, arm_upper = _limits(r, "arms.position_limits", arm_names)
     hold = r.per_joint("arms.hold_pose", arm_names, bounds=_inside(
         "arms.hold_pose", arm_names, arm_lower, arm_upper, "inside arms.position_limits.{name}"))
+    servo_signs = r.per_joint("arms.servo_signs", arm_names)
+    if not np.all(np.abs(servo_signs) == 1.0):
+        name = arm_names[int(np.flatnonzero(np.abs(servo_signs) != 1.0)[0])]
+        raise r.fail(f"arms.servo_signs.{name}", "+1 or -1", float(servo_signs[arm_names.index(name)]))
 
     r.mapping("buses", {"bear", "dynamixel", "sense", "can"})
     buses = Buses(
@@ -803,7 +818,7 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
         actuator_torque_limit=torque_limit,
         torque_per_amp=torque_per_amp,
         coupling=Coupling(matrix),
-        arms=ArmConfig(names=arm_names, lower=arm_lower, upper=arm_upper, hold_pose=hold),
+        arms=ArmConfig(names=arm_names, lower=arm_lower, upper=arm_upper, hold_pose=hold, servo_signs=servo_signs),
         safety=safety,
         models=_models(r, joints),
         buses=buses,

@@ -55,7 +55,7 @@ def above_the_caller(threads: list[threading.Thread]) -> tuple[int | None, Calla
             os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
             changed.append(saved)
         except OSError as exc:
-            log.warning("thread %s keeps its scheduling: %s", thread.name, exc.strerror)
+            log.warning("realtime: thread %s keeps its scheduling: %s", thread.name, exc.strerror)
             restore()
             return None, restore
     return priority, restore

@@ -96,7 +96,8 @@ class MujocoBackend(Backend):
             apply_to_model(self.gap, model, self._dofs, self._acts, cfg.joints)
             self._torque_limit *= self.gap.torque_limit_scale
             self._actuator_gap = ActuatorGap(latency_ticks(self.gap.actuator_latency_s, cfg.dt),
-                                             self.gap.actuator_time_constant_s, cfg.dt, cfg.n_joints)
+                                             self.gap.actuator_time_constant_s, cfg.dt, cfg.n_joints,
+                                             self.gap.per_joint("torque_scale", cfg.joints))
             self._sensor_gap = SensorGap(self.gap, cfg.joints, latency_ticks(self.gap.sensor_latency_s, cfg.dt))
         self.model = model
         self.data = mujoco.MjData(model)

@@ -7,7 +7,9 @@ A `RealityGap` lists the differences (every field defaults to "no gap"); `load_g
   `dof_damping` (solved implicitly, so stiff values stay stable), added to the MJCF's; body mass and inertia scales;
   joint armature (scale, then an added reflected inertia); the motors' joint box limits scaled with the torque limit;
 - on the command path, every physics tick (`ActuatorGap`): the command applied is the one sent `latency` ticks ago
-  (the bus), saturated at the scaled per-actuator limit, then followed by a first-order torque lag (the motor);
+  (the bus), saturated at the scaled per-actuator limit, scaled by the torque-constant error (`torque_scale`: the
+  drive sets the current for the nominal kt, the joint gets the true kt's torque), then followed by a first-order
+  torque lag (the motor);
 - on the sensor path (`SensorGap`): encoder and IMU noise and bias, then the state reported is the one measured
   `latency` ticks ago, with the stamps of when it was measured.
 
@@ -58,6 +60,9 @@ class RealityGap:
     torque_limit_scale: float = _gap_field(
         "actuator.torque_limit_scale", Bound(0.5, 1.0, "", "of the rated torque: kt spread, heat, battery sag"),
         default=1.0)
+    torque_scale: Any = _gap_field(
+        "actuator.torque_scale", Bound(0.5, 1.5, "", "of the commanded torque: a torque-constant error"),
+        "per_joint", default=1.0)
     coulomb: Any = _gap_field(
         "friction.coulomb", Bound(0.0, 1.0, "N·m", "10 % of a BEAR's torque: beyond, a jammed gear"), "per_joint")
     viscous: Any = _gap_field(
@@ -236,13 +241,17 @@ class DelayLine:
 
 
 class ActuatorGap:
-    """The command path: a delay line of what was sent (bus latency) and the motor's first-order torque lag."""
+    """The command path: a delay line of what was sent (bus latency), the torque-constant error and the motor's
+    first-order torque lag."""
 
-    def __init__(self, latency: int, time_constant_s: float, dt: float, n_joints: int):
+    def __init__(self, latency: int, time_constant_s: float, dt: float, n_joints: int,
+                 torque_scale: np.ndarray | float = 1.0):
         self.latency = latency
         self._sent = DelayLine([None] * latency)
         # Exact discretisation of tau_applied' = (tau_cmd - tau_applied) / T under a zero-order-hold command.
         self.alpha = 1.0 - math.exp(-dt / time_constant_s) if time_constant_s > 0.0 else 1.0
+        self.torque_scale = np.broadcast_to(np.asarray(torque_scale, float), (n_joints,)).copy()
+        self._scaled = np.zeros(n_joints) if np.any(self.torque_scale != 1.0) else None
         self._applied = np.zeros(n_joints)
         self._change = np.zeros(n_joints)
 
@@ -256,7 +265,10 @@ class ActuatorGap:
         return self._sent.pass_through(sent)
 
     def lag(self, tau: np.ndarray) -> np.ndarray:
-        """The torque the motors apply during this tick (an internal buffer: copy what you keep)."""
+        """The torque the motors apply during this tick, given the saturated command that arrived: scaled by the
+        torque-constant error, then lagged (an internal buffer, or `tau` itself: copy what you keep)."""
+        if self._scaled is not None:
+            tau = np.multiply(tau, self.torque_scale, out=self._scaled)
         if self.alpha >= 1.0:
             return tau
         np.subtract(tau, self._applied, out=self._change)

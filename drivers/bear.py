@@ -1,7 +1,7 @@
 """Koala BEAR actuators (Westwood Robotics) on RS-485: register tables, packet encoders, a resynchronising reply
 parser, and `BearBus`, a pyserial driver with bounded timeouts whose `bulk_cycle` does one control tick's I/O.
 
-Wire protocol (Dynamixel-1.0-like; docs: research notes bruce_hw.md §2):
+Wire protocol (Dynamixel-1.0-like; sources: Westwood's PyBEAR SDK and BRUCE-OP v0.0.7):
 
     instruction   FF FF ID LEN INSTR params... CHK
     status reply  FF FF ID LEN ERROR data...   CHK

@@ -14,7 +14,7 @@ Wire format (classic CAN, 11-bit identifiers; every field is an unsigned integer
 Scaling follows the published reference: ``uint = trunc((x - min) (2^bits - 1) / (max - min))`` after clamping x to
 [min, max], and ``x = uint (max - min) / (2^bits - 1) + min``, so a round trip is exact to one step.
 
-Choices where the protocol leaves things open (written down here because the research notes have no CAN section):
+Choices where the protocol leaves things open (written down here: no BRUCE source covers CAN):
 
 - Ranges are per motor (`MitRanges`). The default, `AK80_9_V1P1`, is the T-Motor AK80-9 on firmware V1.1 as used by
   the public mini-cheetah-motor-driver-socketcan driver: p +-12.5 rad, v +-22.5 rad/s, kp 0..500 Nm/rad,

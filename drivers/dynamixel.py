@@ -8,7 +8,7 @@ Two parts:
 * `DynamixelArms`, the driver: the SDK's PortHandler and PacketHandler(2.0), a GroupSyncRead of present position and
   velocity and a GroupSyncWrite of goal position, per tick.
 
-Choices where the sources (shared/research/bruce_hw.md section 3) are silent, written down here:
+Choices where the sources (BRUCE-OP v0.0.7's `run_dxl` and the dynamixel-sdk) are silent, written down here:
 
 * Read block: BRUCE's indirect block. Indirect Address 6..13 (addresses 178..192) point at present position
   (132..135) then present velocity (128..131), so Indirect Data 6..13 (229..236) are one 8-byte GroupSyncRead.
@@ -100,10 +100,7 @@ BUS_WATCHDOG_UNIT_S = 0.02        # seconds per count of Bus Watchdog
 BUS_WATCHDOG_MAX = 127            # counts (2.54 s)
 BUS_WATCHDOG_ERROR = -1           # Bus Watchdog reads -1 (0xFF) after it stopped the servo
 
-# -- BRUCE's arms (bruce_hw.md section 3) ----------------------------------------------------------------------
-ARM_IDS = (11, 12, 13, 14, 15, 16)
-ARM_SIGNS = (1.0, 1.0, -1.0, 1.0, 1.0, -1.0)   # elbows flipped
-DEFAULT_BAUD = 2_000_000
+# -- X-series units -----------------------------------------------------------------------------------------------
 POSITION_UNIT = 2.0 * math.pi / 4096.0         # rad per count
 VELOCITY_UNIT = 0.229 * 2.0 * math.pi / 60.0   # rad/s per count (0.229 rpm)
 CENTER_COUNTS = 2048                           # servo angle pi = joint 0
@@ -429,7 +426,7 @@ class DynamixelArms:
 
     Typical use::
 
-        arms = DynamixelArms.open("/dev/ttyUSB1", 2_000_000, ARM_IDS)   # ping all, set up with torque off
+        arms = DynamixelArms.open("/dev/ttyUSB1", 2_000_000, ids)       # ping all, set up with torque off
         arms.hold(pose)                                                 # torque on, goal = pose
         q, qd = arms.read()                                             # one GroupSyncRead
         arms.write_positions(q_goal)                                    # one GroupSyncWrite
@@ -439,7 +436,7 @@ class DynamixelArms:
     servo's error raises `DeviceFault` with named flags. `stats` counts packets, rejections, timeouts and retries.
     """
 
-    def __init__(self, port: str, baud: int = DEFAULT_BAUD, ids: Sequence[int] = ARM_IDS, *,
+    def __init__(self, port: str, baud: int, ids: Sequence[int], *,
                  signs: Sequence[float] | None = None, names: Sequence[str] | None = None,
                  lower: Sequence[float] | None = None, upper: Sequence[float] | None = None,
                  hold_pose: Sequence[float] | None = None, latency_ms: float = 2.0, retries: int = 1,
@@ -451,7 +448,7 @@ class DynamixelArms:
         if n == 0 or len(set(self.ids)) != n or not all(0 <= i <= MAX_ID for i in self.ids):
             raise ValueError(f"ids must be unique servo IDs in 0..{MAX_ID}, got {self.ids}")
         if signs is None:
-            signs = ARM_SIGNS if self.ids == ARM_IDS else (1.0,) * n
+            signs = (1.0,) * n
         self.signs = self._vector(signs, "signs")
         self.names = tuple(names) if names is not None else tuple(f"dxl{i}" for i in self.ids)
         self.lower = self._vector(lower, "lower") if lower is not None else None
@@ -485,7 +482,7 @@ class DynamixelArms:
 
     # -- life cycle ------------------------------------------------------------------------------------------
     @classmethod
-    def open(cls, port: str, baud: int = DEFAULT_BAUD, ids: Sequence[int] = ARM_IDS, **options) -> DynamixelArms:
+    def open(cls, port: str, baud: int, ids: Sequence[int], **options) -> DynamixelArms:
         """Open the port, ping every servo (BusTimeout names the missing ones) and set them up, torque disabled."""
         arms = cls(port, baud, ids, **options)
         arms.connect()
@@ -504,7 +501,7 @@ class DynamixelArms:
         bus, arms = config.buses.dynamixel, config.arms
         options.setdefault("watchdog_s", getattr(bus, "watchdog_s", 0.0))
         return cls.open(port or bus.port, bus.baud, bus.ids, names=arms.names, lower=arms.lower, upper=arms.upper,
-                        hold_pose=arms.hold_pose, **options)
+                        hold_pose=arms.hold_pose, signs=arms.servo_signs, **options)
 
     def connect(self) -> None:
         """Open the serial port (no traffic)."""

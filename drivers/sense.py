@@ -1,6 +1,6 @@
 """BRUCE's sense board (Raspberry Pi Pico, BRUCE-OP v0.0.5/v0.0.7 firmware) on USB serial: IMU and foot contacts.
 
-Wire protocol (research notes §4.1; firmware `Library/BRUCE_SENSE/pico/pico.ino`, host `Manager.py`):
+Wire protocol (BRUCE-OP v0.0.7's sense board; firmware `Library/BRUCE_SENSE/pico/pico.ino`, host `Manager.py`):
 
 - Pico -> host, 29 bytes, 1 kHz, only in NOMINAL mode::
 
@@ -15,10 +15,11 @@ Wire protocol (research notes §4.1; firmware `Library/BRUCE_SENSE/pico/pico.ino
   The firmware reads commands only once per second in NOMINAL mode (every ~10 ms in IDLE), the last valid command
   in its buffer wins, and the rest of its buffer is discarded.
 
-Units and frames: the packet already carries what `bruce_hw.types.ImuSample` wants (rad/s, m/s^2 specific force,
-IMU frame); no conversion is made. The board gives no orientation (`ImuSample.orientation` is None) and the spec
+Units and frames: the packet already carries what the hw backend's IMU sample wants (rad/s, m/s^2 specific force,
+IMU frame); no conversion is made. The board gives no orientation (the backend's attitude filter adds it) and the spec
 found no IMU -> body rotation (the official estimator treats IMU axes as body axes). The board has no e-stop input:
-BRUCE's wireless stop is wired to the BEARs (§4.2), so e-stop reaches the stack through the BEAR error byte.
+BRUCE's wireless stop is wired to the BEARs (Westwood's Wireless_ESTOP), so e-stop reaches the stack through the
+BEAR error byte.
 
 Choices where the spec is silent or the official code is unsafe (all bounded in time, nothing blocks forever):
 - The parser keeps every packet rather than flushing the input buffer after one as the official host does, and
@@ -48,7 +49,6 @@ from enum import IntEnum
 
 import numpy as np
 
-from bruce_hw.types import FootContacts, ImuSample
 from drivers.errors import BusTimeout, DriverError, LinkStats
 
 HEADER = 0xFF
@@ -138,12 +138,6 @@ class SenseSample:
     gyro: np.ndarray     # (3,) rad/s, IMU frame
     contact: np.ndarray  # (4,) bool, FOOT_CONTACT_NAMES order
     bias_report: bool = False  # a calibration bias report: accel/gyro carry the biases, contact is meaningless
-
-    def imu(self, stamp: float) -> ImuSample:
-        return ImuSample(gyro=self.gyro, accel=self.accel, orientation=None, stamp=stamp)
-
-    def foot_contacts(self, stamp: float) -> FootContacts:
-        return FootContacts(contact=self.contact, stamp=stamp)
 
 
 def check_packet(packet: bytes | bytearray | memoryview) -> str | None:
@@ -370,13 +364,13 @@ class SenseBoard:
         stamp = self._latest[1]
         return (time.monotonic() if now is None else now) - stamp
 
-    def read(self) -> tuple[ImuSample, FootContacts]:
-        """The latest IMU sample and foot contacts with the stamp of their arrival; stale data keep their old stamp
-        (the safety stage's sensor-age check catches a stopped stream). Raises BusTimeout before the first."""
+    def read(self) -> tuple[SenseSample, float]:
+        """The latest sample and the monotonic time it arrived; stale data keep their old stamp (the safety stage's
+        sensor-age check catches a stopped stream). Raises BusTimeout before the first."""
         sample, stamp, _ = self._latest
         if sample is None:
             raise BusTimeout(self.port, (), "no sense-board packet received yet")
-        return sample.imu(stamp), sample.foot_contacts(stamp)
+        return sample, stamp
 
     def raise_if_stale(self, max_age_s: float, now: float | None = None) -> None:
         """BusTimeout naming the port when the newest packet is older than max_age_s."""
@@ -385,7 +379,7 @@ class SenseBoard:
             what = "no packet yet" if math.isinf(age) else f"last packet {1e3 * age:.1f} ms ago"
             raise BusTimeout(self.port, (), f"IMU stream stopped: {what} > {1e3 * max_age_s:.1f} ms")
 
-    # -- start-up (research notes §4.1, §5.3)
+    # -- start-up (as BRUCE-OP's `run_sense` does)
     def start(self, *, check_imu: bool = True, stream_timeout_s: float = 3.0, imu_samples: int = 500,
               max_accel_x_std: float = 1.0, imu_attempts: int = 3, sample_timeout_s: float = 5.0) -> None:
         """NOMINAL mode, wait for the stream, then the official IMU check (see `check_imu`)."""
@@ -468,7 +462,7 @@ class SenseBoard:
             self._collector = None
         return batch[:n]
 
-    # -- IMU bias calibration (research notes §4.1; the robot must lie still, z axis up)
+    # -- IMU bias calibration (the firmware's mode 3; the robot must lie still, z axis up)
     def calibrate_imu(self, *, store: bool = True, report_timeout_s: float = 5.0,
                       sampling_timeout_s: float = 30.0) -> tuple[SenseSample, SenseSample]:
         """The firmware's bias calibration: returns (old bias report, new bias report), each with `.gyro` and

@@ -12,6 +12,7 @@ import argparse
 import logging
 import math
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -51,17 +52,31 @@ def constant_command(text: str):
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def join_option_values(argv: list[str], options: tuple[str, ...] = ("--cmd",)) -> list[str]:
+    """`--cmd -0.3,0,0` as `--cmd=-0.3,0,0`: argparse would take a value that starts with a minus for an option."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        if argv[i] in options and i + 1 < len(argv) and re.match(r"-[\d.]", argv[i + 1]):
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
+
+
 def default_rerun_sink() -> str:
     """A viewer only where one can be shown: headless machines (robots, CI) log nothing by default."""
     return "spawn" if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY") else "off"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from bruce_hw.backend import BACKENDS
+    from bruce_hw.backends import BACKENDS
     from bruce_hw.config import DEFAULT_CONFIG
     from runtime.commands import COMMAND_LIMITS, COMMAND_UNITS
-    from runtime.estimation import ESTIMATORS
-    from runtime.run import CONTROLLERS
+    from runtime.controllers import CONTROLLERS
+    from runtime.estimators import ESTIMATORS
     from runtime.telemetry import SINK_HELP
     from runtime.transfer_schemes import TRANSFERS
 
@@ -95,8 +110,8 @@ def build_parser() -> argparse.ArgumentParser:
                        in zip(COMMAND_LIMITS.items(), COMMAND_UNITS, strict=True))
     commands = p.add_mutually_exclusive_group()
     commands.add_argument("--cmd", type=constant_command, default=None, metavar="VX,VY,WZ",
-                          help=f"hold one velocity command (base heading frame; {limits}), ramped up from 0; "
-                               "write --cmd=-0.3,0,0 when it starts with a minus (default: stand still)")
+                          help=f"hold one velocity command (base heading frame; {limits}; the policy was "
+                               "trained on vx [-0.5, 0.8], vy [-0.2, 0.2]), ramped up from 0 (default: stand still)")
     commands.add_argument("--scenario", type=Path, default=None, metavar="PATH",
                           help="play a scenario YAML of timed velocity commands, e.g. "
                                "configs/scenarios/walk_then_turn.yaml (the command is 0 after its end)")
@@ -132,7 +147,8 @@ def main(argv: list[str] | None = None) -> int:
 def _main(argv: list[str] | None, stop: StopFlag) -> int:
     from dataclasses import replace
 
-    from bruce_hw.backend import BackendError, make_backend
+    from bruce_hw.backend import BackendError
+    from bruce_hw.backends import make_backend
     from bruce_hw.config import ConfigError, load_config
     from bruce_hw.reality_gap import GapError, load_gap
     from runtime.commands import CommandSchedule
@@ -141,14 +157,15 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
     from runtime.telemetry import TelemetryError, parse_sink
 
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(join_option_values(sys.argv[1:] if argv is None else list(argv)))
     if args.policy is not None and args.controller != "policy":
         parser.error(f"--policy is for --controller policy, not {args.controller}")
     if args.backend != "mock":
         for flag, value in (("--gap", args.gap), ("--gap-seed", args.gap_seed)):
             if value is not None:
                 parser.error(f"{flag} is for --backend mock (a simulated robot), not {args.backend}")
-    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+    # Each line names its part itself ("safety: ...", "hw backend: ...", "gap: ..."): no logger name before it.
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
         sink = parse_sink(args.rerun or default_rerun_sink())
     except ValueError as exc:
@@ -166,6 +183,11 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
         stop.arm()  # a signal from here on (or one that came while the modules loaded) stops start-up at once
         config = load_config(args.config, args.overrides)
         commands = CommandSchedule.from_yaml(args.scenario) if args.scenario is not None else args.cmd
+        transfer = args.transfer or config.transfer.scheme
+        if args.pinn is not None and (transfer == "direct" or config.transfer.reference_model != "pinn"):
+            raise ConfigError(f"--pinn {args.pinn}: transfer {transfer} on reference model "
+                              f"{config.transfer.reference_model} uses no PINN (pick one with --transfer eq9, shadow "
+                              "or observer)")
         options = {}
         if args.gap is not None or args.gap_seed is not None:
             gap = load_gap(args.gap or "none", config.joints)
@@ -183,7 +205,7 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
         duration = commands.duration
     try:
         summary = run_session(backend, config, duration=duration, realtime=realtime, stats_path=args.stats,
-                              transfer=args.transfer or config.transfer.scheme, policy=args.policy, pinn=args.pinn,
+                              transfer=transfer, policy=args.policy, pinn=args.pinn,
                               rerun=None if sink.kind == "off" else sink, controller_kind=args.controller,
                               estimator=args.estimator, commands=commands, stop=stop)
     except (BackendError, ModelError, TelemetryError, ValueError) as exc:

@@ -107,17 +107,3 @@ class GroundTruthEstimator:
         truth = self.backend.ground_truth()
         return BaseEstimate(quat=truth.base_quat, linvel=rotate_to_body(truth.base_quat, truth.base_linvel),
                             angvel=truth.base_angvel, euler=euler_of(truth.base_quat))
-
-
-ESTIMATORS = ("truth", "kinematic")
-
-
-def make_estimator(kind: str, backend: Backend, config) -> Estimator:
-    """`truth`: the simulator's ground truth (mock only); `kinematic`: IMU + leg kinematics + contacts."""
-    if kind == "truth":
-        return GroundTruthEstimator(backend)
-    if kind == "kinematic":
-        from runtime.kinematic_estimator import KinematicEstimator
-
-        return KinematicEstimator(config)
-    raise ValueError(f"unknown estimator {kind!r} (expected one of {', '.join(ESTIMATORS)})")

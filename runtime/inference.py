@@ -6,7 +6,7 @@ to `q_next`, `qd_next`, `h_next`, `c_next`, all float32. A model is checked agai
 robot config when it loads, so a wrong file fails before the robot moves, naming the file, the tensor and
 the expected shape.
 
-Call path (measured, `shared/research/pinn_anchors.md` §9 and `bench/bench_pinn_step.py`): one intra-op
+Call path (measured: `bench/bench_pinn_step.py`): one intra-op
 thread, no thread pool, sequential execution, no spinning; inputs and outputs are bound once to fixed
 float32 buffers (OrtValues that share the numpy memory) and each tick calls `run_with_iobinding(io)` without
 RunOptions, which costs a few µs over the kernels, where passing RunOptions or `run_with_ort_values` add

@@ -4,14 +4,15 @@ Start-up follows the robot: configure (inactive, reads only) -> load and check t
 sessions -> read the measured pose -> start telemetry -> ask for real-time scheduling -> activate -> loop.
 A tick: read -> safety triggers -> policy (once per policy period on the backend's clock) -> Eq. 8 -> transfer scheme
 (runtime/transfer_schemes.py: direct, the paper's Eq. 9 on the PINN, ...; with a reference model, the gap monitor
-scores its last prediction) -> safety filter -> write -> telemetry. A trip of the safety stage (or SIGINT/SIGTERM) puts
-the backend into its damping state at once and holds it for `safety.damping_hold_s` while still reading; the end of
-`--duration` shuts the backend down (through damping). The nominal controller is the ONNX policy, the
-model-based walking teacher or the standing controller (`CONTROLLERS`); a command schedule
+scores its last prediction) -> safety filter -> write -> telemetry -> observers (`runtime.observers`: evaluation
+and recording, outside every timed section; they may end the run, never change what is sent). A trip of the safety
+stage (or SIGINT/SIGTERM) puts the backend into its damping state at once and holds it for `safety.damping_hold_s`
+while still reading; the end of `--duration` shuts the backend down (through damping). The nominal controller is
+the ONNX policy, the model-based walking teacher or the standing controller (`CONTROLLERS`); a command schedule
 (`runtime.commands`) gives it its velocity command on every policy tick. Every exit prints a summary and,
-with `--stats`, writes it as JSON; on the mock it includes the ground truth: height, fall, and how well the
-base velocity tracked the command. Garbage collection is frozen and disabled inside the loop: the loop's
-allocations are acyclic and freed by reference counting.
+with `--stats`, writes it as JSON; on the mock it includes the ground truth the observers gathered: height, fall,
+and how well the base velocity tracked the command. Garbage collection is frozen and disabled inside the loop:
+the loop's allocations are acyclic and freed by reference counting.
 """
 
 from __future__ import annotations
@@ -19,12 +20,11 @@ from __future__ import annotations
 import gc
 import json
 import logging
-import math
 import queue
 import sys
 import threading
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from logging.handlers import QueueHandler, QueueListener
 from pathlib import Path
 
@@ -33,28 +33,24 @@ import numpy as np
 from bruce_hw.backend import Backend, BackendError, LifecycleState
 from bruce_hw.config import RobotConfig
 from bruce_hw.io_priority import above_the_caller
-from bruce_hw.types import GroundTruth, JointCommand, RobotState
-from runtime.commands import COMMAND_AXES
-from runtime.estimation import Estimator, euler_of, make_estimator, tilt_angle, tilt_of
+from bruce_hw.types import JointCommand, RobotState
+from runtime.controllers import build_controller
+from runtime.estimation import Estimator, tilt_angle
+from runtime.estimators import make_estimator
 from runtime.exit import FAULT_CLASSES, NOTHING_ENABLED, ExitCode, StopFlag, StopRequested
+from runtime.falls import FALL_TILT_RAD
 from runtime.gap_monitor import GapMonitor
-from runtime.inference import ModelError, OnnxPinn, OnnxPolicy
+from runtime.inference import ModelError, OnnxPinn
 from runtime.loopstats import LoopStats
 from runtime.mixing import eq8_torque
+from runtime.observers import GroundTruthLog, TickObserver, TickView, ground_truth_observers
 from runtime.pacing import Pacer
-from runtime.policy import ObservationBuilder, PolicyController
 from runtime.realtime import RealtimeGrant, request_realtime
 from runtime.safety import SafetyStage, SafetyState
-from runtime.standing import StandingController
 from runtime.transfer_schemes import TransferScheme, build_scheme
 
-FALL_HEIGHT_FRACTION = 0.6   # fallen when the base is below this share of its nominal standing height
-FALL_TILT_RAD = math.pi / 4  # ... or the base is tilted more than this
 AT_REST_QD = 0.05            # rad/s: the damping hold ends early once every joint is this slow ...
 AT_REST_TICKS = 100          # ... for this many ticks in a row
-TRUTH_PHASE = 5              # the mock's truth log runs on this tick of each policy period, not with the policy
-TRACKING_SKIP_S = 2.0        # velocity tracking is scored after this start-up transient (soft start, first steps)
-CONTROLLERS = ("policy", "teacher", "standing")
 # Controllers fold torque into their targets (a = q + tau / Kp: the standing controller's ankles, the teacher's
 # feed-forward), so a target may leave the joint range. One further than this many times torque_limit / Kp beyond
 # the range asks for more torque than the joint has wherever the joint is: the model is broken (refused before the
@@ -64,116 +60,6 @@ TARGET_TORQUE_MULTIPLE = 2.0
 # this many times the velocity limit, is a broken model.
 PINN_RANGE_MULTIPLE = 1.0
 PINN_VELOCITY_MULTIPLE = 2.0
-
-
-def heading_velocity(truth: GroundTruth) -> np.ndarray:
-    """(vx, vy, yaw rate) of the base: the linear velocity in the heading frame (yaw only), the world-z rate."""
-    w, x, y, z = truth.base_quat
-    yaw = float(euler_of(truth.base_quat)[2])
-    c, s = math.cos(yaw), math.sin(yaw)
-    vx, vy, _ = truth.base_linvel
-    wx, wy, wz = truth.base_angvel  # base frame: the world z rate is the third row of R(quat) times it
-    yaw_rate = 2 * (x * z - w * y) * wx + 2 * (y * z + w * x) * wy + (1 - 2 * (x * x + y * y)) * wz
-    return np.array([c * vx + s * vy, c * vy - s * vx, yaw_rate])
-
-
-@dataclass
-class VelocityTracking:
-    """Running sums of the measured base velocity and the command in force, per axis (vx, vy, wz)."""
-
-    samples: int = 0
-    measured_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    command_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    squared_error_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-    def add(self, measured: np.ndarray, command: np.ndarray) -> None:
-        self.samples += 1
-        self.measured_sum += measured
-        self.command_sum += command
-        error = measured - command
-        self.squared_error_sum += error * error
-
-    def _per_axis(self, values: np.ndarray) -> dict[str, float] | None:
-        """(vx, vy, wz) by name; None before the first sample (the callers' max(samples, 1) only avoids 0 / 0)."""
-        return dict(zip(COMMAND_AXES, values.tolist(), strict=True)) if self.samples else None
-
-    @property
-    def measured_mean(self) -> dict[str, float] | None:
-        return self._per_axis(self.measured_sum / max(self.samples, 1))
-
-    @property
-    def command_mean(self) -> dict[str, float] | None:
-        return self._per_axis(self.command_sum / max(self.samples, 1))
-
-    @property
-    def error(self) -> dict[str, float] | None:
-        """|mean(v) - mean(cmd)|: a walking base sways within each step, so its mean is what tracks."""
-        return self._per_axis(np.abs(self.measured_sum - self.command_sum) / max(self.samples, 1))
-
-    @property
-    def rmse(self) -> dict[str, float] | None:
-        return self._per_axis(np.sqrt(self.squared_error_sum / max(self.samples, 1)))
-
-    def to_json(self) -> dict:
-        return {"tracking_samples": self.samples, "command_mean": self.command_mean,
-                "velocity_mean": self.measured_mean, "tracking_error": self.error, "tracking_rmse": self.rmse}
-
-    def text(self) -> str:
-        def triple(values: dict[str, float], sign: str = "") -> str:
-            return "/".join(f"{v:{sign}.3f}" for v in values.values())
-
-        return (f"  velocity after {TRACKING_SKIP_S:g} s (vx/vy m/s, wz rad/s, {self.samples} samples): command mean "
-                f"{triple(self.command_mean, '+')}, measured mean {triple(self.measured_mean, '+')}\n"
-                f"    tracking error |mean(v) - mean(cmd)| {triple(self.error)}, rmse {triple(self.rmse)}")
-
-
-@dataclass
-class GroundTruthLog:
-    """What the simulator's truth says about a run (mock only)."""
-
-    nominal_base_height: float
-    base_height_min: float = math.inf
-    base_height_max: float = -math.inf
-    base_xy_start: list[float] | None = None
-    base_xy_end: list[float] | None = None
-    base_yaw_end: float | None = None
-    sim_time: float = 0.0
-    fell: bool = False
-    tracking: VelocityTracking = field(default_factory=VelocityTracking)
-
-    def update(self, truth: GroundTruth) -> None:
-        z = float(truth.base_pos[2])
-        self.base_height_min = min(self.base_height_min, z)
-        self.base_height_max = max(self.base_height_max, z)
-        xy = [float(truth.base_pos[0]), float(truth.base_pos[1])]
-        if self.base_xy_start is None:
-            self.base_xy_start = xy
-        self.base_xy_end = xy
-        self.base_yaw_end = float(euler_of(truth.base_quat)[2])
-        self.sim_time = truth.sim_time
-        if z < FALL_HEIGHT_FRACTION * self.nominal_base_height or tilt_of(truth.base_quat) > FALL_TILT_RAD:
-            self.fell = True
-
-    def track(self, truth: GroundTruth, elapsed: float, command: np.ndarray) -> None:
-        """Score the base velocity against the command in force, `elapsed` s after activation."""
-        if elapsed >= TRACKING_SKIP_S:
-            self.tracking.add(heading_velocity(truth), command)
-
-    @property
-    def tracking_error(self) -> dict[str, float] | None:
-        return self.tracking.error
-
-    @property
-    def tracking_rmse(self) -> dict[str, float] | None:
-        return self.tracking.rmse
-
-    def to_json(self) -> dict:
-        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "tracking"}
-        for key in ("base_height_min", "base_height_max"):
-            if not math.isfinite(out[key]):
-                out[key] = None
-        out.update(self.tracking.to_json())
-        return out
 
 
 @dataclass
@@ -283,25 +169,6 @@ class LogRelay:
             logger.handlers, logger.propagate, logger.level = handlers, propagate, level
 
 
-def build_controller(config: RobotConfig, policy_path: Path | None, kind: str = "policy"):
-    """The nominal controller and its name. `policy`: the ONNX policy given (or configured), else the standing
-    controller; `teacher`: the model-based walking controller; `standing`: the standing controller."""
-    if kind not in CONTROLLERS:
-        raise ValueError(f"unknown controller {kind!r} (expected one of {', '.join(CONTROLLERS)})")
-    if policy_path is not None and kind != "policy":
-        raise ValueError(f"a policy model ({policy_path}) is for the policy controller, not {kind!r}")
-    if kind == "teacher":
-        from runtime.walking.teacher import WalkingTeacher  # only runs that walk with it load its models
-
-        return WalkingTeacher(config), "walking teacher"
-    path = (policy_path or config.models.policy) if kind == "policy" else None
-    if path is None:
-        return StandingController(config), "standing controller"
-    policy = OnnxPolicy(path, ObservationBuilder(config).size, config.n_joints)
-    policy.warmup()
-    return PolicyController(config, policy), f"policy {path}"
-
-
 def build_gap_monitor(config: RobotConfig, scheme: TransferScheme) -> GapMonitor | None:
     """The live gap monitor of a scheme that has a reference model (None for direct transfer)."""
     if scheme.reference is None:
@@ -390,17 +257,18 @@ def exit_code_of(exc: BaseException) -> ExitCode:
 def run_session(backend: Backend, config: RobotConfig, *, duration: float | None, realtime: bool,
                 stats_path: Path | None = None, transfer: str = "direct", policy: Path | None = None,
                 pinn: Path | None = None, rerun=None, controller=None, controller_kind: str = "policy",
-                estimator: str | Estimator | None = None, commands=None, recorder=None,
+                estimator: str | Estimator | None = None, commands=None,
+                observers: list[TickObserver] | tuple[TickObserver, ...] = (),
                 stop: StopFlag | None = None) -> RunSummary:
     """Run one session. `rerun` is a `runtime.telemetry.RerunSink` (None: no telemetry); `controller_kind` picks
     the nominal controller (`build_controller`), and `controller` replaces it (anything with reset(q) and
-    __call__(state, base, command) -> a); `estimator` is an estimator kind (`runtime.estimation.ESTIMATORS`) or
+    __call__(state, base, command) -> a); `estimator` is an estimator kind (`runtime.estimators.ESTIMATORS`) or
     an `Estimator` (default: the truth where the backend has one, else the kinematic estimator); `commands` has
     `at(t) -> (vx, vy, yaw rate)` for t in seconds since activation, e.g. a `runtime.commands.CommandSchedule`
-    (default: stand still). `recorder(tick, q, qd, tau)` (e.g. `training.collect`'s) is called on every tick
-    after the write with the state read and the torque written (the arrays are the loop's: copy what you keep);
-    a non-empty string it returns ends the run after that tick, as the end of `duration` does, with that
-    string as the stop cause. Its time counts in the telemetry section.
+    (default: stand still). `observers` (`runtime.observers.TickObserver`, e.g. `training.collect`'s recorder) see
+    every tick after the write, outside the timed sections, after the mock's own ground-truth observers (which fill
+    `summary.truth`); a non-empty string one returns ends the run after that tick, as the end of `duration` does,
+    with that string as the stop cause.
 
     SIGINT/SIGTERM (`stop`, installed here if not given) before activation end start-up at once with nothing
     enabled (the summary says so, exit code 0, nothing raised); after, the loop ends through damping. Every model is
@@ -419,9 +287,16 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         stop.arm()
         backend.configure()
         robot = backend.read()
+        watching = list(observers)
         if backend.ground_truth() is not None:
             summary.truth = GroundTruthLog(nominal_base_height=backend.nominal_base_height)
-        scheme = build_scheme(config, transfer, pinn, base_state=backend.ground_truth)
+            watching[:0] = ground_truth_observers(summary.truth)
+        # A twin scheme runs a second instance of the robot's own nominal controller (a controller object passed in
+        # cannot be copied: its twin gets the configured policy).
+        twin_controller = None if controller is not None else (
+            lambda: build_controller(config, policy, controller_kind)[0])
+        scheme = build_scheme(config, transfer, pinn, base_state=backend.ground_truth,
+                              twin_controller=twin_controller)
         summary.gap = build_gap_monitor(config, scheme)
         pinn_runner = getattr(scheme.reference, "pinn", None)  # checked on the measured pose below
         if estimator is None or isinstance(estimator, str):
@@ -434,7 +309,8 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         if rerun is not None:
             from runtime.telemetry import make_telemetry  # rerun-sdk loads only when telemetry is on
 
-            telemetry = make_telemetry(config, rerun, model=getattr(backend, "model", None))
+            telemetry = make_telemetry(config, rerun, model=getattr(backend, "model", None),
+                                       gap=summary.gap is not None)
         if telemetry is not None:
             telemetry.start()  # its threads start before the loop thread asks for real-time scheduling
         if realtime:
@@ -465,7 +341,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
             print(f"bruce-run: {grant.text()}", flush=True)
         gc.disable()
         _loop(backend, config, controller, estimator, commands, scheme, telemetry, summary, stop, duration,
-              realtime, recorder)
+              realtime, tuple(watching))
         summary.final_state = backend.state.value
         if backend.state is LifecycleState.FAULT:
             summary.final_state = f"{backend.state.value}: damping"
@@ -511,14 +387,13 @@ def _settle(backend: Backend, summary: RunSummary) -> None:
 
 def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimator, commands, scheme: TransferScheme,
           telemetry, summary: RunSummary, stop: StopFlag, duration: float | None, realtime: bool,
-          recorder=None) -> None:
+          observers: tuple[TickObserver, ...] = ()) -> None:
     stats = summary.loop
     sections = stats.sections
     h_read, h_policy, h_pinn, h_mix = sections["read"], sections["policy"], sections["pinn"], sections["mixing"]
     h_safety, h_write, h_tel = sections["safety"], sections["write"], sections["telemetry"]
     safety = SafetyStage(config)
     n_ticks = None if duration is None else round(duration * config.loop_hz)
-    decimation = config.policy_decimation
     # The policy runs on the backend's clock, once per policy period from the first tick: a missed deadline does not
     # slow the gait clock or the command schedule (docs/timing.md).
     policy_period_us = round(1e6 / config.policy_hz)
@@ -526,18 +401,21 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     first_now = None
     eq8 = config.eq8
     gap = summary.gap
-    truth = summary.truth
     poses = telemetry is not None and hasattr(backend, "body_poses")
     pose_every = getattr(telemetry, "pose_decimation", 20)
     events_sent = 0
     clock0 = backend.clock()
+    view = TickView(backend, clock0)
+    for observer in observers:
+        observer.on_start(backend, config)
     perf = time.perf_counter_ns
     pacer = Pacer(config.dt)
     late_ns = pacer.late_ns
     pacer.start()
     tick, previous_start, first_start = 0, 0, 0
     a = None
-    recorder_stop = None
+    residual = None  # the gap monitor's residual this tick (None: no monitor, or no prediction to score)
+    observer_stop = None
     standstill = np.zeros(3)
     command = standstill
     a_low, a_high = target_bounds(config)
@@ -577,10 +455,10 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
             t2 = perf()
             tau_star = eq8_torque(a, q, qd, eq8)
             t3 = perf()
-            if gap is not None:
-                gap.update(scheme.one_step, q, qd)  # last tick's prediction against this tick's measurement
+            if gap is not None:  # last tick's prediction against this tick's measurement
+                residual = gap.update(scheme.one_step, q, qd)
             try:
-                scheme.predict(a, q, qd, tau_star)
+                scheme.predict(a, q, qd, tau_star, command)
             except ModelError as exc:
                 safety.trip(str(exc))
                 break
@@ -593,12 +471,11 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
             t6 = perf()
             backend.write(JointCommand(tau_ff=tau))
             t7 = perf()
-            if recorder is not None:
-                recorder_stop = recorder(tick, q, qd, tau)
             if telemetry is not None:
                 elapsed = now - clock0
                 telemetry.append(tick, elapsed, q, qd, scheme.q_hat, scheme.qd_hat, a, tau_star, tau,
-                                 (t0 - previous_start) / 1e3, (t7 - t0) / 1e3, int(safety.state))
+                                 (t0 - previous_start) / 1e3, (t7 - t0) / 1e3, int(safety.state),
+                                 None if residual is None else (residual.qd, residual.q, gap.window_rms))
                 if poses and tick % pose_every == 0:
                     telemetry.append_pose(tick, elapsed, *backend.body_poses())
                 if len(safety.transitions) > events_sent:
@@ -606,10 +483,12 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
                         telemetry.event(tick, elapsed, text, "info")
                     events_sent = len(safety.transitions)
             t8 = perf()
-            if truth is not None and tick % decimation == TRUTH_PHASE:
-                ground_truth = backend.ground_truth()  # evaluation only (in work, in no section): between policy ticks
-                truth.update(ground_truth)
-                truth.track(ground_truth, now - clock0, command)
+            if observers:  # evaluation only: in the tick's work, in no section
+                view.fill(tick, now, robot, command, a, tau_star, tau)
+                for observer in observers:
+                    cause = observer.on_tick(view)
+                    if cause:
+                        observer_stop = observer_stop or cause
             h_read.add(t1 - t0)
             h_policy.add(t2 - t1)
             h_pinn.add(t4 - t3)
@@ -625,7 +504,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
             previous_start = t0
             tick += 1
             stats.ticks = tick
-            if recorder_stop:
+            if observer_stop:
                 break
     finally:  # a backend error raised from read() still leaves correct counters
         stats.late_ticks, stats.skipped_ticks = pacer.late_ticks, pacer.skipped_ticks
@@ -635,16 +514,16 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     if stop.cause is not None:
         safety.trip(f"{stop.cause} received")
     if not safety.tripped:
-        summary.end(ExitCode.OK, recorder_stop or "duration reached")
-        if truth is not None:
-            truth.update(backend.ground_truth())
+        summary.end(ExitCode.OK, observer_stop or "duration reached")
+        for observer in observers:
+            observer.on_end(summary)
         return
     if stop.cause is not None:
         summary.end(ExitCode.OK, stop.cause)
     else:
         summary.end(ExitCode.SAFETY_TRIP, safety.cause)
-    if truth is not None:
-        truth.update(backend.ground_truth())  # the truth log covers the controlled part of the run
+    for observer in observers:
+        observer.on_end(summary)  # the evaluation covers the controlled part of the run
     backend.fault(summary.stop_cause)
     _hold_damping(backend, config, safety, telemetry, tick, clock0, realtime)
 

@@ -20,6 +20,14 @@ send (`torque`: the mixing). Schemes:
   the reference model. Held at zero during the safety stage's torque ramp (the robot then gets less than tau*).
   The PINN's own mean residual on the simulator (`pinn.residual_bias`, measured with the gap monitor on the
   nominal mock) is taken off the residual: integrated, a model's bias becomes a posture offset on any robot.
+- `twin`, `shadow_twin`: direct transfer or the shadow, plus a slow integral of the robot's posture offset from
+  its live nominal twin (`runtime.nominal_twin`: the simulator's own closed loop, resynchronised to the robot's
+  measured joints and base state every `transfer.twin.resync_s`): u <- clip(u + Kp dt / T (q_twin - q), +- clip),
+  Kp the Eq. 8 stiffness, T = `transfer.twin.time_constant_s`, clip = `transfer.twin.clip` x the torque limit. It
+  sees the offsets that build over seconds (a static load, a turning gait's lean), which no prediction over a few
+  ticks does; where the robot is the simulator the twin is the robot and u stays 0. An offset above
+  `transfer.twin.disturbance_rad` on any joint is a disturbance the twin did not feel (a push): not integrated,
+  and the twin resynchronises at the next policy tick. Mock only: the twin needs the full base state.
 
 `one_step` is the model's prediction of the next tick's (q, qd) from this tick's measured state (None when the
 scheme made none this tick): the gap monitor's input (`runtime.gap_monitor`).
@@ -33,11 +41,14 @@ import numpy as np
 
 from bruce_hw.config import TRANSFER_SCHEMES as TRANSFERS  # the config validates transfer.scheme against them
 from bruce_hw.config import PdGains, RobotConfig
+from runtime.controllers import build_controller
 from runtime.mixing import eq8_torque, eq9_torque
+from runtime.nominal_twin import NominalTwin
 from runtime.reference_models import ReferenceModel, build_reference
 from runtime.transfer_gains import joint_inertia, observer_gain, pd_gains
 
 EQ9_ALIASES = ("pinn", "eq9")  # `--transfer pinn` has always meant the paper's Eq. 9
+TWIN_SCHEMES = {"twin": "direct", "shadow_twin": "shadow"}  # each one's inner scheme
 
 
 class TransferScheme:
@@ -57,8 +68,9 @@ class TransferScheme:
         if self.reference is not None:
             self.reference.reset()
 
-    def predict(self, a: np.ndarray, q: np.ndarray, qd: np.ndarray, tau_star: np.ndarray) -> None:
-        """The model work of this tick (none for direct transfer)."""
+    def predict(self, a: np.ndarray, q: np.ndarray, qd: np.ndarray, tau_star: np.ndarray,
+                command: np.ndarray | None = None) -> None:
+        """The model work of this tick (none for direct transfer); `command` is the (vx, vy, yaw rate) in force."""
 
     def torque(self, tau_star: np.ndarray, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
         return tau_star
@@ -74,7 +86,7 @@ class Eq9Scheme(TransferScheme):
         self.gains = gains
         self._one_step = one_step  # False: the model rolls ahead (pinn.lookahead_ticks), not a one-step prediction
 
-    def predict(self, a, q, qd, tau_star) -> None:
+    def predict(self, a, q, qd, tau_star, command=None) -> None:
         self.q_hat, self.qd_hat = self.reference.step(q, qd, tau_star)
         self.one_step = (self.q_hat, self.qd_hat) if self._one_step else None
 
@@ -98,7 +110,7 @@ class ShadowScheme(TransferScheme):
         self._tick = 0
         self._next = None
 
-    def predict(self, a, q, qd, tau_star) -> None:
+    def predict(self, a, q, qd, tau_star, command=None) -> None:
         resync = self._next is None or self._tick % self.resync_ticks == 0
         self._tick += 1
         if resync:
@@ -133,7 +145,7 @@ class ObserverScheme(TransferScheme):
         self.u = np.zeros_like(self.gain)
         self._ticks = 0
 
-    def predict(self, a, q, qd, tau_star) -> None:
+    def predict(self, a, q, qd, tau_star, command=None) -> None:
         if self.one_step is not None and self._ticks >= self.hold_ticks:
             residual = self.one_step[1] - qd - self.bias  # > 0: the robot is slower than the model: push more
             self.u = np.clip(self.u + self.gain * residual, -self.clip, self.clip)
@@ -145,14 +157,67 @@ class ObserverScheme(TransferScheme):
         return tau_star + self.u
 
 
-def build_scheme(config: RobotConfig, name: str, pinn_path: Path | None = None, base_state=None) -> TransferScheme:
+class TwinScheme(TransferScheme):
+    """An inner scheme plus a slow clipped integral of the robot's posture offset from its nominal twin."""
+
+    def __init__(self, inner: TransferScheme, twin: NominalTwin, gain: np.ndarray, clip: np.ndarray,
+                 hold_ticks: int, disturbance: float = np.inf):
+        super().__init__(inner.reference)
+        self.name = "twin" if inner.name == "direct" else f"{inner.name}_twin"
+        self.inner, self.twin = inner, twin
+        self.gain, self.clip, self.hold_ticks = gain, clip, hold_ticks  # gain: N·m per rad of offset, per tick
+        self.disturbance = disturbance  # rad: an offset this large is something the twin did not feel, not a gap
+        self.u = np.zeros_like(gain)
+        self._ticks = 0
+        self._sent: np.ndarray | None = None  # the torque this scheme gave last tick
+
+    def reset(self) -> None:
+        self.inner.reset()
+        self.twin.reset()
+        self.q_hat = self.qd_hat = self.one_step = None
+        self.u = np.zeros_like(self.gain)
+        self._ticks = 0
+        self._sent = None
+
+    def predict(self, a, q, qd, tau_star, command=None) -> None:
+        self.inner.predict(a, q, qd, tau_star, command)
+        self.q_hat, self.qd_hat, self.one_step = self.inner.q_hat, self.inner.qd_hat, self.inner.one_step
+        if self.twin.q is not None:
+            offset = self.twin.q - q
+            if np.abs(offset).max() > self.disturbance:
+                self.twin.resync_requested = True  # integrated, a push would be pulled back along the twin's path
+            elif self._ticks >= self.hold_ticks:
+                self.u = np.clip(self.u + self.gain * offset, -self.clip, self.clip)
+        self._ticks += 1
+        self.twin.advance(a, q, qd, np.zeros(3) if command is None else command, self._sent)
+
+    def torque(self, tau_star, q, qd) -> np.ndarray:
+        self._sent = self.inner.torque(tau_star, q, qd) + self.u
+        return self._sent
+
+
+def build_scheme(config: RobotConfig, name: str, pinn_path: Path | None = None, base_state=None,
+                 twin_controller=None) -> TransferScheme:
     """The scheme `name` (TRANSFERS) with its reference model (`transfer.reference_model`; `base_state` gives the
-    nominal model its base state: the backend's ground truth) and its settings from `config.transfer`."""
+    nominal model its base state: the backend's ground truth) and its settings from `config.transfer`.
+    `twin_controller()` makes the twin schemes' second instance of the robot's nominal controller (default: the
+    configured walking policy)."""
     if name not in TRANSFERS:
         raise ValueError(f"unknown transfer {name!r} (expected one of {', '.join(TRANSFERS)})")
     if name == "direct":
         return TransferScheme()
     settings = config.transfer
+    if name in TWIN_SCHEMES:
+        inner = build_scheme(config, TWIN_SCHEMES[name], pinn_path, base_state)
+        resync = max(1, round(settings.twin_resync_s * config.loop_hz))
+        controller = twin_controller() if twin_controller is not None else build_controller(config, None, "policy")[0]
+        twin = NominalTwin(config, base_state or (lambda: None), resync, controller)
+        # The integral starts at the first resync after the torque ramp: the window before began from the pose at
+        # activation with the torques still fading in.
+        ramp = round(config.safety.torque_ramp_s * config.loop_hz)
+        return TwinScheme(inner, twin, config.eq8.kp * config.dt / settings.twin_time_constant_s,
+                          settings.twin_clip * config.tau_limit, hold_ticks=-(-(ramp + 1) // resync) * resync,
+                          disturbance=settings.twin_disturbance_rad)
     lookahead = config.models.pinn_lookahead_ticks if name in EQ9_ALIASES else 0
     reference = build_reference(config, settings.reference_model, pinn_path, base_state or (lambda: None),
                                 lookahead=lookahead, scheme=name)

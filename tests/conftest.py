@@ -165,7 +165,7 @@ def no_memory_lock(monkeypatch):
 @pytest.fixture(scope="module")
 def emulator():
     """`bruce-emulate --lockstep` in a child process: the physics steps once per host bulk cycle."""
-    from drivers.emulators.cli import EmulatorProcess
+    from runtime.emulate_cli import EmulatorProcess
 
     emu = EmulatorProcess("--realtime", "--lockstep")
     yield emu
@@ -182,3 +182,20 @@ def hw_config(emulator):
                     "place"):
         emulator.send(command)
     return load_config(overrides=emulator.overrides + WALL_CLOCK_SLACK)
+
+
+# Modules whose tests walk the mock for seconds, train or export networks, or drive the emulated buses: left out of
+# the fast subset, `pytest -m "not slow and not hardware and not realtime"` (README), which runs in under a minute.
+SLOW_MODULES = {
+    "test_walking", "test_kinematic_estimator", "test_transfer_eval", "test_transfer_eval_schemes", "test_distill",
+    "test_collect", "test_observers", "test_hw_backend", "test_hw_safety", "test_hw_check", "test_emulator_timing",
+    "test_emulator_cli", "test_train_dynamics", "test_pinn_export", "test_lstm_baseline", "test_analytic",
+    "test_evaluate", "test_telemetry", "test_bear_reply_loss", "test_reality_gap", "test_run_outcomes", "test_cli",
+    "test_loop", "test_transfer_schemes", "test_standing", "test_olnn", "test_commands",
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.module.__name__.rsplit(".", 1)[-1] in SLOW_MODULES:
+            item.add_marker(pytest.mark.slow)

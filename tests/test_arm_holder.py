@@ -1,8 +1,8 @@
-"""When the arm bus counts as lost (bruce_hw.hw.ArmSilence, the arms' thread's rule), on hand-made cycle times: a
-silent bus becomes lost after ARM_SILENCE_TO_FAULT_S of failed cycles; a thread that could not run for that long
-(a collection holding the GIL, a busy machine) fails one cycle and is not a lost bus."""
+"""When the arm bus counts as lost (bruce_hw.arm_holder.ArmSilence, the arms' thread's rule), on hand-made cycle
+times: a silent bus becomes lost after ARM_SILENCE_TO_FAULT_S of failed cycles; a thread that could not run
+for that long (a collection holding the GIL, a busy machine) fails one cycle and is not a lost bus."""
 
-from bruce_hw.hw import ARM_FAILED_CYCLES_TO_FAULT, ARM_PERIOD_S, ARM_SILENCE_TO_FAULT_S, ArmSilence
+from bruce_hw.arm_holder import ARM_FAILED_CYCLES_TO_FAULT, ARM_PERIOD_S, ARM_SILENCE_TO_FAULT_S, ArmSilence
 
 
 def test_a_silent_arm_bus_is_lost_after_the_silence_bound():

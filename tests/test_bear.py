@@ -91,7 +91,7 @@ def test_bulk_packet_layout_and_length():
     params = bytes([2, 0x12, 0x09, 0x03, 0x00]) + b"\x01" + f32(1.0) + u32(1) + b"\x02" + f32(-1.0) + u32(0)
     assert packet == frame(0xFE, 0x12, params)
     n_motors, n_read, n_write = 2, 1, 2
-    assert packet[3] == n_motors + n_read + n_write + 4 * n_write * n_motors + 4  # LEN formula of §2.4
+    assert packet[3] == n_motors + n_read + n_write + 4 * n_write * n_motors + 4  # LEN formula of BULK_COMM
     # BRUCE's tick: 10 motors, 3 reads, 3 force-mode writes: 144 bytes on the wire.
     force = [status_register(n) for n in ("goal_position", "goal_velocity", "goal_iq")]
     tick = encode_bulk(IDS, [status_register(n) for n in CYCLE_READS], force, np.zeros((10, 3)))

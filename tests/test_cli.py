@@ -122,6 +122,24 @@ def test_cmd_out_of_range(text, problem, capsys):
     assert problem in parse_error(["--cmd", text], capsys)
 
 
+def test_a_negative_cmd_works_in_the_natural_form(tmp_path):
+    from runtime.cli import join_option_values
+
+    assert join_option_values(["--cmd", "-0.3,0,0", "--duration", "1"]) == ["--cmd=-0.3,0,0", "--duration", "1"]
+    assert join_option_values(["--cmd", "--duration"]) == ["--cmd", "--duration"]  # an option stays an option
+    stats = tmp_path / "s.json"
+    assert main(["--backend", "mock", "--cmd", "-0.3,0,0", "--duration", "0.05", "--rerun", "off",
+                 "--stats", str(stats)]) == 0
+    assert json.loads(stats.read_text())["exit_code"] == 0
+
+
+def test_a_pinn_without_a_scheme_that_uses_one_is_refused_in_one_line(tmp_path, capsys):
+    code = main(["--backend", "mock", "--pinn", str(tmp_path / "p.onnx"), "--duration", "0.05", "--rerun", "off"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1
+    assert "--pinn" in err[0] and "transfer direct" in err[0] and "--transfer eq9" in err[0]
+
+
 def test_cmd_and_scenario_are_mutually_exclusive(capsys):
     err = parse_error(["--cmd", "0.4,0,0", "--scenario", "configs/scenarios/walk_then_turn.yaml"], capsys)
     assert "not allowed with argument" in err

@@ -1,4 +1,4 @@
-"""bruce-collect: short walks in the mock, recorded through the runtime loop's recorder hook."""
+"""bruce-collect: short walks in the mock, recorded by an observer of the runtime loop."""
 
 import json
 

@@ -12,7 +12,9 @@ from bruce_hw.config import ConfigError
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.types import GroundTruth
 from runtime.commands import COMMAND_LIMITS, CommandSchedule
-from runtime.run import TRACKING_SKIP_S, GroundTruthLog, build_controller, heading_velocity, run_session
+from runtime.controllers import build_controller
+from runtime.observers import TRACKING_SKIP_S, GroundTruthLog, heading_velocity
+from runtime.run import run_session
 from runtime.standing import StandingController
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "configs" / "scenarios"

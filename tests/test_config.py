@@ -167,3 +167,13 @@ def test_gait_period_is_a_number_or_a_cadence_table(config, raw_config, write_co
     _expect_error(write_config, raw_config, "policy.gait_period_s[0][1]", "a number in (0.1, 2] s", "got 0.0")
     raw_config["policy"]["gait_period_s"] = [0.0, 0.36]
     _expect_error(write_config, raw_config, "policy.gait_period_s[0]", "a [vx (m/s), period (s)] pair", "got 0.0")
+
+
+def test_arm_servo_signs_come_from_the_config_and_are_plus_or_minus_one(raw_config, write_config):
+    from bruce_hw.config import ConfigError, load_config
+
+    config = load_config()
+    assert config.arms.servo_signs.tolist() == [1.0, 1.0, -1.0, 1.0, 1.0, -1.0]  # BRUCE-OP's flipped elbows
+    raw_config["arms"]["servo_signs"]["r_elbow"] = 0
+    with pytest.raises(ConfigError, match=r"arms\.servo_signs\.r_elbow: expected \+1 or -1, got 0\.0"):
+        load_config(write_config(raw_config))

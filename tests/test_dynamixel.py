@@ -12,9 +12,8 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
+from bruce_hw.config import load_config
 from drivers.dynamixel import (
-    ARM_IDS,
-    ARM_SIGNS,
     BUS_WATCHDOG_UNIT_S,
     ERR_ACCESS,
     ERR_CRC,
@@ -51,10 +50,16 @@ FAST = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCh
 PING_11 = bytes.fromhex("ff ff fd 00 0b 03 00 01")  # completed with its CRC below
 HOLD = [0.0, 0.0, 1.5708, 0.0, 0.0, 1.5708]
 
+# BRUCE's arm bus as the robot config describes it (IDs, baud, how each servo is mounted)
+_CONFIG = load_config()
+ARM_IDS = tuple(_CONFIG.buses.dynamixel.ids)
+ARM_SIGNS = tuple(float(v) for v in _CONFIG.arms.servo_signs)
+BAUD = _CONFIG.buses.dynamixel.baud
+
 
 @pytest.fixture
 def emu():
-    with DynamixelBusEmulator() as bus:
+    with DynamixelBusEmulator(ARM_IDS, signs=ARM_SIGNS) as bus:
         yield bus
 
 
@@ -69,7 +74,7 @@ def port(emu):
 
 @pytest.fixture
 def arms(emu):
-    with DynamixelArms.open(emu.path, 2_000_000, ARM_IDS, latency_ms=10.0, hold_pose=HOLD,
+    with DynamixelArms.open(emu.path, BAUD, ARM_IDS, signs=ARM_SIGNS, latency_ms=10.0, hold_pose=HOLD,
                             lower=[-3.1416, -1.5708, -2.3, -3.1416, -1.9, -2.3],
                             upper=[3.1416, 1.9, 2.3, 3.1416, 1.5708, 2.3]) as driver:
         yield driver
@@ -382,7 +387,7 @@ def test_status_return_level(emu, port):
 @FAST
 @given(st.binary(max_size=300), st.data())
 def test_emulator_survives_random_bytes_and_corruptions(garbage, data):
-    bus = DynamixelBusEmulator()   # no pty: bytes in, bytes out
+    bus = DynamixelBusEmulator(ARM_IDS, signs=ARM_SIGNS)   # no pty: bytes in, bytes out
     bus.handle(garbage)
     write = encode_packet(11, 0x03, bytes([65, 0, 1]))     # LED on
     i = data.draw(st.integers(0, len(write) - 1))
@@ -468,7 +473,7 @@ def test_default_sync_read_timeout_is_short():
 
 
 def test_silent_servos_are_named_within_bounded_time(emu):
-    with DynamixelArms.open(emu.path, latency_ms=10.0) as driver:
+    with DynamixelArms.open(emu.path, BAUD, ARM_IDS, signs=ARM_SIGNS, latency_ms=10.0) as driver:
         driver.read()
         emu.silence([12, 15])
         started = time.monotonic()
@@ -485,7 +490,7 @@ def test_silent_servos_are_named_within_bounded_time(emu):
 def test_open_names_missing_servos(emu):
     emu.silence([14])
     with pytest.raises(BusTimeout) as caught:
-        DynamixelArms.open(emu.path, latency_ms=5.0)
+        DynamixelArms.open(emu.path, BAUD, ARM_IDS, signs=ARM_SIGNS, latency_ms=5.0)
     assert caught.value.silent_ids == (14,)
 
 
@@ -655,7 +660,8 @@ def test_driver_writes_reads_back_and_clears_the_watchdog(emu):
         read_packets(ser)
     assert emu.item(13, "bus_watchdog") == -1
     emu.drain_events()
-    with DynamixelArms.open(emu.path, latency_ms=10.0, hold_pose=HOLD, watchdog_s=0.2) as arms:
+    with DynamixelArms.open(emu.path, BAUD, ARM_IDS, signs=ARM_SIGNS, latency_ms=10.0, hold_pose=HOLD,
+                            watchdog_s=0.2) as arms:
         assert arms.watchdog_counts == 10
         assert arms.read_watchdog() == {i: 10 for i in ARM_IDS}
         assert all(emu.item(i, "bus_watchdog") == 10 for i in ARM_IDS)
@@ -676,7 +682,7 @@ def test_driver_writes_reads_back_and_clears_the_watchdog(emu):
 
 
 def test_driver_close_keeps_the_watchdog_of_a_servo_it_could_not_turn_off(emu):
-    arms = DynamixelArms.open(emu.path, latency_ms=5.0, hold_pose=HOLD, watchdog_s=0.04)
+    arms = DynamixelArms.open(emu.path, BAUD, ARM_IDS, signs=ARM_SIGNS, latency_ms=5.0, hold_pose=HOLD, watchdog_s=0.04)
     arms.hold()
     emu.silence([12])                                # unplugged: its torque cannot be turned off
     arms.close()
@@ -686,7 +692,7 @@ def test_driver_close_keeps_the_watchdog_of_a_servo_it_could_not_turn_off(emu):
     assert expiry(events, 12) and emu.item(12, "bus_watchdog") == -1    # it stops by itself
     # torque_off_on_close=False: the servos stay on, so their watchdog stays armed.
     emu.clear_faults()
-    with DynamixelArms.open(emu.path, latency_ms=5.0, hold_pose=HOLD, watchdog_s=0.04,
+    with DynamixelArms.open(emu.path, BAUD, ARM_IDS, signs=ARM_SIGNS, latency_ms=5.0, hold_pose=HOLD, watchdog_s=0.04,
                             torque_off_on_close=False) as arms:
         arms.hold()
     assert emu.torque_enabled_all().all() and all(emu.item(i, "bus_watchdog") in (2, -1) for i in ARM_IDS)
@@ -697,11 +703,11 @@ def test_driver_read_back_and_write_failures_name_the_servo_and_register(emu, mo
     write = servo.write
     monkeypatch.setattr(servo, "write", lambda address, data: 0 if address == 98 else write(address, data))
     with pytest.raises(DeviceFault) as caught:       # servo 14 acknowledges but ignores the write
-        DynamixelArms.open(emu.path, latency_ms=10.0, watchdog_s=0.4)
+        DynamixelArms.open(emu.path, BAUD, ARM_IDS, signs=ARM_SIGNS, latency_ms=10.0, watchdog_s=0.4)
     assert caught.value.device_id == 14 and "Bus Watchdog (98) reads back 0, expected 20" in str(caught.value)
     monkeypatch.setattr(servo, "write", lambda address, data: ERR_ACCESS if address == 98 else write(address, data))
     with pytest.raises(DeviceFault) as caught:       # e.g. a firmware without the item
-        DynamixelArms.open(emu.path, latency_ms=10.0, watchdog_s=0.4)
+        DynamixelArms.open(emu.path, BAUD, ARM_IDS, signs=ARM_SIGNS, latency_ms=10.0, watchdog_s=0.4)
     assert caught.value.device_id == 14 and "access error" in caught.value.flags
     assert "Bus Watchdog (98)" in str(caught.value)
 
@@ -709,18 +715,18 @@ def test_driver_read_back_and_write_failures_name_the_servo_and_register(emu, mo
 @pytest.mark.parametrize("seconds, counts", [(0.0, 0), (0.02, 1), (0.4, 20), (0.41, 20), (2.54, 127)])
 def test_watchdog_seconds_to_counts(seconds, counts):
     assert watchdog_counts(seconds) == counts
-    assert DynamixelArms("/dev/null", watchdog_s=seconds).watchdog_counts == counts
+    assert DynamixelArms("/dev/null", BAUD, ARM_IDS, watchdog_s=seconds).watchdog_counts == counts
     assert counts * BUS_WATCHDOG_UNIT_S == pytest.approx(round(seconds / 0.02) * 0.02)
 
 
 @pytest.mark.parametrize("seconds", [0.005, 2.6, -0.02, float("nan"), float("inf")])
 def test_watchdog_outside_its_range_is_refused(seconds):
     with pytest.raises(ValueError, match="watchdog_s"):
-        DynamixelArms("/dev/null", watchdog_s=seconds)
+        DynamixelArms("/dev/null", BAUD, ARM_IDS, watchdog_s=seconds)
 
 
 def test_event_log_records_torque_changes_bounded_and_thread_safe():
-    bus = DynamixelBusEmulator()                     # no pty: bytes in, bytes out
+    bus = DynamixelBusEmulator(ARM_IDS, signs=ARM_SIGNS)                     # no pty: bytes in, bytes out
 
     def torque(on: int) -> bytes:                    # SYNC_WRITE of Torque Enable to every servo
         return encode_packet(0xFE, 0x83, bytes([64, 0, 1, 0]) + b"".join(bytes([i, on]) for i in ARM_IDS))

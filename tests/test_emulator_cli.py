@@ -11,14 +11,14 @@ import serial
 from bruce_hw.config import load_config
 from drivers.bear import BearBus, encode_ping
 from drivers.dynamixel import INST_PING, encode_packet
-from drivers.emulators.cli import EmulatorProcess, execute, parse_event, reply_time, status
 from drivers.errors import BusTimeout
 from drivers.sense import encode_command
+from runtime.emulate_cli import EmulatorProcess, execute, parse_event, reply_time, status
 
 
 @pytest.fixture(scope="module")
 def robot():
-    from drivers.emulators.plant import EmulatedRobot
+    from bruce_hw.emulated_plant import EmulatedRobot
 
     with EmulatedRobot(load_config()) as emulated:
         yield emulated

@@ -14,10 +14,10 @@ import serial
 
 from drivers.bear import BearBus
 from drivers.dynamixel import INST_PING, encode_packet
-from drivers.emulators.cli import EmulatorProcess, main
 from drivers.emulators.reply_delay import ReplyDelay, check_delay, wait_until
 from drivers.emulators.sense import SenseBoardEmulator
 from drivers.sense import SenseBoard
+from runtime.emulate_cli import EmulatorProcess, main
 
 IDS = list(range(1, 11))
 PING_REPLY_LEN = 14  # FF FF FD 00, ID, LEN (2), 0x55, error, model (2), firmware, CRC (2)

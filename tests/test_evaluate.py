@@ -16,6 +16,7 @@ from torch import nn
 
 from training import checkpoint, eval_report, evaluate
 from training.dataset import Dataset, config_hash, save_dataset, split_by_time
+from training.eval_cli import main as eval_main
 from training.evaluate import (
     EvalError,
     Protocol,
@@ -297,7 +298,7 @@ def test_the_cli_writes_json_markdown_and_figures(tmp_path, monkeypatch, capsys,
     seeds = [save_pinn_checkpoint(tmp_path / f"pinn_{s}.pt", seed=s) for s in (0, 1)]
     checkpoint.save_checkpoint(tmp_path / "euler.pt", EulerModel(), data={"sha256": evaluate.file_sha256(data_path)})
     out = tmp_path / "eval"
-    code = evaluate.main(["dynamics", "--data", str(data_path), "--model", f"pinn={seeds[0]},{seeds[1]}",
+    code = eval_main(["dynamics", "--data", str(data_path), "--model", f"pinn={seeds[0]},{seeds[1]}",
                           "--model", f"euler={tmp_path / 'euler.pt'}", "--out", str(out), "--k", "5,20,50",
                           "--starts", "12", "--warmup", "10", "--chunk", "64", "--timing-calls", "40"])
     assert code == 0, capsys.readouterr().err
@@ -344,17 +345,17 @@ def test_the_cli_rejects_a_model_or_a_file_that_does_not_fit(tmp_path, capsys, c
     data_path = write_dataset(tmp_path / "walk.npz", config, synthetic_arrays())
     ckpt = save_pinn_checkpoint(tmp_path / "pinn.pt", seed=0, config=dataclasses.replace(SMALL_PINN, dt=2e-3))
     args = ["--k", "5", "--warmup", "2", "--timing-calls", "0", "--out", str(tmp_path / "out")]
-    assert evaluate.main(["dynamics", "--data", str(data_path), "--model", f"pinn={ckpt}", *args]) == 1
+    assert eval_main(["dynamics", "--data", str(data_path), "--model", f"pinn={ckpt}", *args]) == 1
     assert f"pinn.pt: model dt=0.002 s, data file {data_path} has dt=0.001 s" in capsys.readouterr().err
 
     other = synthetic_arrays()
     np.savez(tmp_path / "bare.npz", **other)  # no metadata: not tied to a robot config
     ckpt = save_pinn_checkpoint(tmp_path / "pinn_ok.pt", seed=0)
-    assert evaluate.main(["dynamics", "--data", str(tmp_path / "bare.npz"), "--model", f"pinn={ckpt}", *args]) == 1
+    assert eval_main(["dynamics", "--data", str(tmp_path / "bare.npz"), "--model", f"pinn={ckpt}", *args]) == 1
     assert "bare.npz: missing array 'metadata'" in capsys.readouterr().err
 
     torch.save({"kind": "pinn", "config": {}}, tmp_path / "broken.pt")
-    assert evaluate.main(["dynamics", "--data", str(data_path), "--model", f"pinn={tmp_path / 'broken.pt'}",
+    assert eval_main(["dynamics", "--data", str(data_path), "--model", f"pinn={tmp_path / 'broken.pt'}",
                           *args]) == 1
     assert "broken.pt: missing key(s) ['state_dict']" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()

@@ -19,9 +19,10 @@ from conftest import WALL_CLOCK_SLACK
 
 from bruce_hw import BackendError, JointCommand, LifecycleState
 from bruce_hw.attitude import MahonyAttitude
+from bruce_hw.bear_legs import actuator_position_limits
 from bruce_hw.config import load_config
-from bruce_hw.hw import HwBackend, actuator_position_limits, make_hw_backend, missing_for_hw
-from drivers.emulators.cli import FaultAt, reply_time
+from bruce_hw.hw import HwBackend, make_hw_backend, missing_for_hw
+from runtime.emulate_cli import FaultAt, reply_time
 from runtime.exit import ExitCode
 from runtime.run import run_session
 
@@ -101,7 +102,7 @@ def test_startup_names_every_missing_device(emulator, hw_config):
 
 
 def test_hw_check_reports_ok_then_names_a_silent_id(emulator, hw_config, capsys):
-    from drivers.hw_check import main
+    from bruce_hw.hw_check import main
 
     argv = [w for item in emulator.overrides for w in ("--set", item)]
     assert main(argv) == 0
@@ -116,7 +117,7 @@ def test_hw_check_reports_ok_then_names_a_silent_id(emulator, hw_config, capsys)
 def test_can_legs_compose_with_the_virtual_bus():
     """CAN legs (configs/robots/bruce_can.yaml) on python-can's in-process virtual bus: torque goes out through
     the coupling as the MIT torque field, damping is a damping-only command kept after shutdown."""
-    from drivers.emulators.plant import EmulatedRobot
+    from bruce_hw.emulated_plant import EmulatedRobot
 
     base = load_config("configs/robots/bruce_can.yaml")
     with EmulatedRobot(base) as robot:

@@ -10,10 +10,10 @@ import time
 
 import pytest
 
+from bruce_hw.hw_check import ProbeError, main, probe_watchdog
 from drivers.bear import BearBus
 from drivers.emulators import bear as bear_emulator
 from drivers.emulators.bear import BearBusEmulator
-from drivers.hw_check import ProbeError, main, probe_watchdog
 
 IDS = list(range(1, 11))
 
@@ -97,7 +97,7 @@ STREAM_LINE = re.compile(r"stream over (\d+) ticks of 1 ms: (\d+) packets/s .*ag
 
 @pytest.fixture(scope="module")
 def emulated_robot():
-    from drivers.emulators.cli import EmulatorProcess
+    from runtime.emulate_cli import EmulatorProcess
 
     with EmulatorProcess() as emu:
         yield emu
@@ -168,3 +168,14 @@ def test_a_bad_cycle_count_is_one_line(capsys):
         assert main(["--rtt-cycles", value]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("bruce-hw-check: --rtt-cycles: "), err
+
+
+def test_the_problem_line_names_every_bus_it_counts():
+    from bruce_hw.hw_check import BusReport
+
+    reports = [BusReport("BEAR legs (/dev/ttyUSB0)", missing=[3, 4]), BusReport("Dynamixel arms", error="no port"),
+               BusReport("sense board", faults=["ID 1: IMU"])]
+    phrases = [r.problem() for r in reports]
+    assert phrases == ["BEAR legs: missing 3, 4", "Dynamixel arms: cannot use the bus (no port)",
+                       "sense board: 1 device(s) with faults"]
+    assert BusReport("ok bus").problem() == ""

@@ -20,7 +20,7 @@ from conftest import BEAR_IDS, DXL_IDS, WALL_CLOCK_SLACK
 
 from bruce_hw import BackendError
 from bruce_hw.hw import HwBackend, make_hw_backend
-from drivers.emulators.cli import FaultAt, reply_time
+from runtime.emulate_cli import FaultAt, reply_time
 from runtime.exit import ExitCode, StopFlag
 from runtime.run import run_session
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import mujoco
 import numpy as np
@@ -16,9 +16,15 @@ from bruce_hw.reality_gap import GapError, RealityGap, load_gap, profile_names
 from bruce_hw.types import JointCommand
 from runtime.cli import main
 from runtime.commands import CommandSchedule
+from runtime.observers import EachTick
 from runtime.run import run_session
 
 KNEE = 3  # r_knee in the config's joint order
+# The shipped one-factor profiles (configs/gaps/) and the RealityGap fields each sets.
+ONE_FACTOR_KEYS = {"latency_2ms": {"actuator_latency_s"}, "torque_lag_2ms": {"actuator_time_constant_s"},
+                   "torque_constant_0p8": {"torque_scale"}, "coulomb_0p2": {"coulomb"}, "viscous_0p05": {"viscous"},
+                   "mass_1p2": {"mass_scale", "inertia_scale"}, "armature_add_1bear": {"armature_add"},
+                   "sensor_noise_1ms": {"q_noise", "qd_noise", "sensor_latency_s"}}
 
 
 def configured(config, gap: RealityGap | None = None) -> MujocoBackend:
@@ -64,6 +70,41 @@ def test_torque_limit_scale_saturates_each_actuator_lower(config):
     per_actuator = np.abs(config.coupling.actuator_torques(tau))
     assert per_actuator.max() == pytest.approx(0.8 * config.actuator_torque_limit)
     assert np.all(per_actuator <= 0.8 * config.actuator_torque_limit + 1e-9)
+
+
+@pytest.mark.parametrize("torque_scale", [0.8, {"r_knee": 0.8}])
+def test_torque_scale_gives_the_joint_that_share_of_the_command(config, torque_scale):
+    """A torque-constant error: the joint gets torque_scale x the (saturated) command, every tick, whatever the
+    limit; a per-joint mapping leaves the other joints at the command."""
+    command = np.linspace(-2.0, 2.0, config.n_joints)  # well inside every limit
+    expected_scale = RealityGap(torque_scale=torque_scale).per_joint("torque_scale", config.joints)
+    with configured(config, RealityGap(torque_scale=torque_scale)) as scaled, configured(config) as nominal:
+        applied = {}
+        for name, mock in (("scaled", scaled), ("nominal", nominal)):
+            mock.activate()
+            mock.read()
+            mock.write(JointCommand(tau_ff=command))
+            applied[name] = np.array([mock.read().joints.tau for _ in range(5)])
+    np.testing.assert_allclose(applied["nominal"], np.broadcast_to(command, (5, config.n_joints)), atol=1e-12)
+    np.testing.assert_allclose(applied["scaled"], applied["nominal"] * expected_scale, rtol=1e-12, atol=1e-12)
+    assert expected_scale[KNEE] == 0.8 and (isinstance(torque_scale, float) or expected_scale[0] == 1.0)
+
+
+def test_torque_scale_moves_a_joint_from_rest_with_that_share_of_the_acceleration(config):
+    """In the air (no contact), one tick of a knee torque from rest: the knee's velocity change scales with it."""
+    step = np.zeros(config.n_joints)
+    step[KNEE] = 1.0
+    gained = {}
+    for scale in (1.0, 0.8):
+        with configured(config, RealityGap(torque_scale=scale)) as mock:
+            mock.data.qpos[2] += 0.5
+            mujoco.mj_forward(mock.model, mock.data)
+            mock.activate()
+            before = mock.read().joints.qd[KNEE]
+            mock.write(JointCommand(tau_ff=step))
+            gained[scale] = mock.read().joints.qd[KNEE] - before
+    assert gained[1.0] > 0.0
+    assert gained[0.8] / gained[1.0] == pytest.approx(0.8, rel=0.02)
 
 
 # -- friction ----------------------------------------------------------------------------------------------------
@@ -226,7 +267,7 @@ def walk(config, gap: RealityGap | None) -> tuple[np.ndarray, np.ndarray]:
     rows = []
     backend = MujocoBackend(config, gap=gap)
     run_session(backend, config, duration=1.5, realtime=False, commands=CommandSchedule.constant(0.4, 0.0, 0.0),
-                recorder=lambda tick, q, qd, tau: rows.append(np.concatenate([q, qd, tau])))
+                observers=[EachTick(lambda view: rows.append(np.concatenate([view.q, view.qd, view.tau])))])
     return np.array(rows), np.concatenate([backend.data.qpos, backend.data.qvel])
 
 
@@ -239,7 +280,7 @@ def test_none_profile_is_bit_identical_to_no_gap_over_a_short_walk(config):
     assert load_gap("none") == RealityGap()
 
 
-@pytest.mark.parametrize("name", ["none", "mild", "default", "harsh"])
+@pytest.mark.parametrize("name", profile_names())
 def test_each_shipped_profile_loads_and_runs(config, name):
     assert name in profile_names()
     gap = load_gap(name, config.joints)
@@ -251,6 +292,14 @@ def test_each_shipped_profile_loads_and_runs(config, name):
             mock.write(JointCommand(tau_ff=np.zeros(config.n_joints), q_ref=config.standing_pose,
                                     kp=np.full(config.n_joints, 20.0)))
     assert np.all(np.isfinite(state.joints.q)) and np.all(np.isfinite(state.imu.accel))
+
+
+def test_one_factor_profiles_are_the_none_profile_plus_their_one_factor(config):
+    none = load_gap("none", config.joints)
+    for name, factor in ONE_FACTOR_KEYS.items():
+        gap = load_gap(name, config.joints)
+        changed = {f.name for f in fields(RealityGap) if f.compare and getattr(gap, f.name) != getattr(none, f.name)}
+        assert changed == factor, name
 
 
 def test_default_profile_has_the_documented_values(config):
@@ -273,6 +322,8 @@ def test_default_profile_has_the_documented_values(config):
     ("actuator:\n  latncy_s: 0.001\n", "actuator.latncy_s: unknown key (expected one of ['latency_s',"),
     ("actuators:\n  latency_s: 0.001\n", "actuators: unknown key (expected seed or one of ['actuator',"),
     ("actuator:\n  torque_limit_scale: 1.2\n", "actuator.torque_limit_scale: expected a number in [0.5, 1] ("),
+    ("actuator:\n  torque_scale: 1.6\n", "actuator.torque_scale: expected a number in [0.5, 1.5] ("),
+    ("actuator:\n  torque_scale: {r_knee: 0.2}\n", "actuator.torque_scale.r_knee: expected a number in [0.5, 1.5]"),
     ("inertia:\n  mass_scale: 0\n", "inertia.mass_scale: expected a number in [0.5, 2] ("),
     ("inertia:\n  inertia_scale: 5\n", "inertia.inertia_scale: expected a number in [0.5, 2] ("),
     ("inertia:\n  armature_scale: {r_knee: -2}\n", "inertia.armature_scale.r_knee: expected a number in [0.5, 2]"),
@@ -320,14 +371,15 @@ def test_gap_built_in_code_is_checked_too(config):
 
 
 # -- bruce-run ---------------------------------------------------------------------------------------------------
-def test_bruce_run_mock_with_a_gap(tmp_path, capsys):
+@pytest.mark.parametrize("name", ["mild", "torque_constant_0p8"])
+def test_bruce_run_mock_with_a_gap(tmp_path, capsys, name):
     stats = tmp_path / "stats.json"
-    assert main(["--backend", "mock", "--gap", "mild", "--gap-seed", "4", "--duration", "0.5", "--rerun", "off",
+    assert main(["--backend", "mock", "--gap", name, "--gap-seed", "4", "--duration", "0.5", "--rerun", "off",
                  "--stats", str(stats)]) == 0
     data = json.loads(stats.read_text())
     assert data["ticks"] == 500 and data["stop_cause"] == "duration reached" and data["fell"] is False
     out = capsys.readouterr().out
-    assert "reality gap " in out and "mild.yaml (seed 4)" in out
+    assert "reality gap " in out and f"{name}.yaml (seed 4)" in out
 
 
 def test_bruce_run_gap_is_for_the_mock_only(capsys):

@@ -502,3 +502,60 @@ def test_a_mock_run_logs_joints_every_tick_and_poses_at_display_rate(config, tmp
     assert 1 <= len(segments) <= elapsed / FILE_CHUNK_S + 2  # one per chunk (was one per 50 ms)
     points = np.vstack([segments[0]] + [s[1:] for s in segments[1:]])
     assert points == pytest.approx(np.array([base[t][0] for t in ticks]), abs=1e-6)
+
+
+def test_gap_residuals_go_out_under_gap_joint_with_nan_where_none_was_scored(config, tmp_path):
+    path = tmp_path / "gap.rrd"
+    knee = config.joints.index("r_knee")
+    n = config.n_joints
+    with Telemetry(config, parse_sink(f"save={path}"), gap=True, batch_period_s=0.01) as telemetry:
+        for tick in range(50):
+            residual = None if tick == 0 else tuple(tick + np.arange(n) / 100 + k / 1000 for k in range(3))
+            telemetry.append(tick, tick / 1000, *joint_row(config, tick, with_pinn=True), gap=residual)
+    assert telemetry.error is None and telemetry.sent_rows == 50
+    assert {f"gap/{name}" for name in config.joints} <= rrd_entity_paths(path)
+    rows = rrd_rows(path, "gap/r_knee", "Scalars:scalars")  # qd residual, q residual, qd window RMS
+    assert sorted(rows) == list(range(50))
+    assert all(math.isnan(v) for v in rows[0])  # no prediction scored on the first tick
+    assert rows[20] == pytest.approx([20 + knee / 100 + k / 1000 for k in range(3)])
+    # The joint series are where they were: the gap blocks do not shift them.
+    assert rrd_rows(path, "joints/r_knee", "Scalars:scalars")[20] == pytest.approx(
+        [20 + knee / 100 + k / 1000 for k in (0, 2, 4, 1, 3, 5, 6)])
+
+
+def test_without_a_gap_monitor_there_is_no_gap_entity(config, tmp_path):
+    path = tmp_path / "nogap.rrd"
+    with Telemetry(config, parse_sink(f"save={path}"), batch_period_s=0.01) as telemetry:
+        for tick in range(10):
+            telemetry.append(tick, tick / 1000, *joint_row(config, tick, with_pinn=False),
+                             gap=(np.ones(config.n_joints),) * 3)  # ignored: made without gap=True
+    assert not any(p.startswith("gap/") for p in rrd_entity_paths(path))
+    assert sorted(rrd_rows(path, "joints/r_knee", "Scalars:scalars")) == list(range(10))
+
+
+def test_a_saved_recording_says_where_it_went(config, tmp_path, capsys):
+    path = tmp_path / "where.rrd"
+    with Telemetry(config, parse_sink(f"save={path}"), batch_period_s=0.01) as telemetry:
+        telemetry.append(0, 0.0, *joint_row(config, 0, with_pinn=False))
+    out = capsys.readouterr().out
+    assert f"rerun recording saved to {path}" in out and path.exists()
+
+
+def test_a_run_with_a_reference_model_streams_its_gap_monitor(config, tmp_path):
+    from runtime.cli import main
+
+    path = tmp_path / "gap_run.rrd"
+    stats = tmp_path / "stats.json"
+    assert main(["--backend", "mock", "--duration", "0.2", "--controller", "standing", "--transfer", "eq9",
+                 "--gap", "default", "--rerun", f"save={path}", "--stats", str(stats)]) == 0
+    rows = rrd_rows(path, "gap/r_knee", "Scalars:scalars")  # qd residual, q residual, qd window RMS
+    assert len(rows) == 200 and all(math.isnan(v) for v in rows[0])  # nothing predicted before the first tick
+    scored = [rows[t] for t in range(1, 200)]
+    assert all(math.isfinite(v) for row in scored for v in row) and max(abs(r[0]) for r in scored) > 0
+    # The window RMS is the RMS of the last window's velocity residuals (window_s 0.1 s = 100 ticks).
+    last = [rows[t][0] for t in range(100, 200)]
+    assert rows[199][2] == pytest.approx(math.sqrt(sum(v * v for v in last) / len(last)), rel=1e-9)
+    import json
+
+    summary = json.loads(stats.read_text())
+    assert summary["gap_samples"] == 199 and summary["gap_residual_rms"]["r_knee"] > 0

@@ -133,7 +133,7 @@ def test_settings_and_checkpoints_are_checked(tmp_path):
     with pytest.raises(CheckpointError, match="file not found"):
         load_model_checkpoint(tmp_path / "missing.pt")
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
-    with pytest.raises(CheckpointError, match="not a readable torch checkpoint"):
+    with pytest.raises(CheckpointError, match="not a torch checkpoint that loads with weights_only=True"):
         load_model_checkpoint(tmp_path / "junk.pt")
     assert dataclasses.asdict(TrainConfig())["lr"] == 1e-2  # the paper's optimiser is the default
 
@@ -172,3 +172,19 @@ def test_export_cli_writes_onnx_with_parity_and_the_commands_that_regenerate_it(
     assert sidecar["parity_1000_steps"] <= 1e-5 and sidecar["seed"] == 0 and sidecar["epochs"] == 2
     assert "bruce-train --data" in sidecar["command"] and "bruce-export --checkpoint" in sidecar["command"]
     assert sidecar["data"]["sha256"] and sidecar["kind"] == "pinn_step"
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["bruce-train", "--data", "nope.npz", "--model", "pinn", "--out", "x.pt"], "nope.npz: dataset file not found"),
+    (["bruce-export", "--checkpoint", "nope.pt", "--out", "x.onnx"], "checkpoint nope.pt: file not found"),
+    (["bruce-export", "--checkpoint", "NOT_A_CHECKPOINT", "--out", "x.onnx"], "not a torch checkpoint"),
+])
+def test_training_clis_answer_a_bad_file_in_one_line(argv, says, tmp_path, monkeypatch, capsys):
+    from training.export import main as export_main
+    from training.train_dynamics import main as train_main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "NOT_A_CHECKPOINT").write_text("robot\n")
+    code = (train_main if argv[0] == "bruce-train" else export_main)(argv[1:])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and says in err[0] and "Traceback" not in err[0]

@@ -6,17 +6,24 @@ import math
 import numpy as np
 import pytest
 
-from training.evaluate import main as eval_main
+from bruce_hw.reality_gap import load_gap
+from training import transfer_eval
+from training.eval_cli import main as eval_main
+from training.transfer_cache import spec_key
 from training.transfer_eval import (
     EXPERIMENTS,
     RunRecord,
     RunSpec,
+    TransferSettings,
     aggregate,
     circle_deviation,
+    deviation_from_simulator,
     distance_to_path,
     drift,
     ideal_path,
     joint_rmse,
+    offset_and_shape,
+    plan_suite,
 )
 
 DT = 1e-3
@@ -42,6 +49,41 @@ def test_joint_rmse_is_per_joint_after_the_skip_over_the_common_length():
     ramp = record(t, q=reference.q + np.linspace(0, 1, 5000)[:, None])
     expected = np.sqrt(np.mean(np.linspace(0, 1, 5000)[2000:] ** 2))
     np.testing.assert_allclose(joint_rmse(ramp, reference, skip_s=2.0), [expected, expected], rtol=1e-12)
+
+
+def test_offset_and_shape_split_the_rmse_per_joint():
+    t = np.arange(5000) * DT
+    rng = np.random.default_rng(1)
+    reference = record(t, q=rng.normal(size=(5000, 2)))
+    wobble = rng.normal(size=(5000, 2)) * [0.05, 0.2]
+    run = record(t, q=reference.q + [0.1, -0.3] + wobble)
+    offset, shape = offset_and_shape(run, reference, skip_s=2.0)
+    error = run.q[2000:] - reference.q[2000:]
+    np.testing.assert_allclose(offset, error.mean(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(offset ** 2 + shape ** 2, joint_rmse(run, reference, skip_s=2.0) ** 2, rtol=1e-12)
+    np.testing.assert_allclose(shape, wobble[2000:].std(axis=0), rtol=1e-12)
+    still, _ = offset_and_shape(record(t, q=reference.q + [0.1, -0.3]), reference)
+    np.testing.assert_allclose(still, [0.1, -0.3], rtol=1e-9)  # a pure offset has no shape
+    assert np.all(offset_and_shape(record(t, q=reference.q + [0.1, -0.3]), reference)[1] < 1e-12)
+
+
+def test_deviation_from_the_simulator_is_the_distance_at_the_same_tick():
+    t = np.arange(0, 10.0, DT)
+    simulator = ideal_path((0.4, 0.0, 0.4), t, np.zeros(2), 0.0, ramp_s=0.0)
+    shifted = simulator + [0.3, 0.4]
+    shifted[:1000] += 5.0  # inside the start-up skip: not scored
+    d = deviation_from_simulator(record(t, xy=shifted), record(t, xy=simulator), skip_s=2.0)
+    assert d["mean_deviation_from_simulator"] == pytest.approx(0.5) and d["max_deviation_from_simulator"] == \
+        pytest.approx(0.5)
+    # the same circle, 1 s late: on the ideal circle both, yet 0.4 m/s x 1 s behind (a chord of the unit circle)
+    late = np.vstack([np.zeros((1000, 2)), simulator[:-1000]])
+    chord = 2 * math.sin(0.4 * 1.0 / 2)
+    d = deviation_from_simulator(record(t, xy=late), record(t, xy=simulator), skip_s=2.0)
+    assert d["mean_deviation_from_simulator"] == pytest.approx(chord, rel=1e-3)
+    assert circle_deviation(record(t, xy=late), (0.4, 0.0, 0.4), skip_s=2.0)["mean_radial_deviation"] < 1e-3
+    # a run that stopped early is scored over the ticks both reached
+    short = deviation_from_simulator(record(t[:4000], xy=shifted[:4000]), record(t, xy=simulator), skip_s=2.0)
+    assert short["mean_deviation_from_simulator"] == pytest.approx(0.5)
 
 
 def test_ideal_path_integrates_the_ramped_command():
@@ -133,3 +175,115 @@ def test_bad_options_are_named(tmp_path, capsys, args, message):
     assert eval_main(["transfer", "--out", str(tmp_path / "x"), *args]) == 1
     assert message in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+# -- several profiles, and the run cache ----------------------------------------------------------------------------
+def suite_settings(**changes) -> TransferSettings:
+    profiles = (("default", load_gap("default")), ("none", load_gap("none")))
+    base = dict(gap=profiles[0][1], gap_name="default", profiles=profiles, seeds=(0, 1, 2), seconds=2.6,
+                experiments=("tracking", "circle"), latencies_ms=(0.0, 4.0), gain_scales=(), sweep_seeds=(0,),
+                schemes=("shadow",))
+    return TransferSettings(**{**base, **changes})
+
+
+def test_a_suite_plans_every_profile_and_sweeps_the_first_only():
+    specs = plan_suite(suite_settings())
+    by_profile = {}
+    for spec in specs:
+        by_profile.setdefault("nominal" if spec.gap is None else spec.gap.source.rsplit("/", 1)[-1], []).append(spec)
+    runs = {name: {(s.experiment, s.mode, s.gap.seed) for s in group} for name, group in by_profile.items()
+            if name != "nominal"}
+    for name in ("default.yaml", "none.yaml"):
+        assert {(e, m, seed) for e in ("tracking", "circle") for m in ("direct", "shadow") for seed in (0, 1, 2)} \
+            <= runs[name]
+    assert {s.experiment for s in by_profile["none.yaml"]} == {"tracking", "circle"}
+    sweeps = [s for s in specs if s.experiment == "sweep_latency"]
+    assert {s.gap.actuator_latency_s for s in sweeps} == {0.0, 0.004} and len(sweeps) == 4
+    assert all(s.gap.sensor_latency_s == load_gap("default").sensor_latency_s for s in sweeps)  # default's sweep
+    # the nominal runs are the profiles' shared reference: one run each
+    assert len({spec_key(s) for s in by_profile["nominal"]}) == 2
+    # a profile without noise makes the same run whatever its seed; one with noise does not
+    none_keys = {spec_key(s) for s in by_profile["none.yaml"]}
+    default_keys = {spec_key(s) for s in by_profile["default.yaml"] if s.experiment == "tracking"}
+    assert len(none_keys) == 4 and len(default_keys) == 6
+
+
+def fake_run(spec: RunSpec, calls: list) -> RunRecord:
+    """A stand-in for a mock run: joints off the simulator by an amount the mode, the gap and the seed set."""
+    calls.append(spec)
+    t = np.arange(round(spec.seconds / DT)) * DT
+    path = ideal_path(spec.command, t, np.zeros(2), 0.0)
+    if spec.mode == "nominal":
+        error = 0.0
+    else:
+        error = 0.01 * (1 + spec.gap.actuator_latency_s * 1e3 + spec.gap.seed) * (0.3 if spec.mode == "shadow" else 1)
+    q = np.zeros((len(t), 10)) + error
+    return RunRecord(spec=spec, t=t, q=q, qd=np.zeros_like(q), tau=np.zeros_like(q), xy=path + error,
+                     yaw=np.zeros(len(t)), velocity=np.zeros((len(t), 3)), fell=False, stop_cause="duration reached")
+
+
+def test_an_interrupted_suite_resumes_and_a_finished_one_runs_nothing(tmp_path, monkeypatch):
+    calls: list = []
+    budget = {"left": 7}
+
+    def interrupted(spec):
+        if budget["left"] == 0:
+            raise KeyboardInterrupt
+        budget["left"] -= 1
+        return fake_run(spec, calls)
+
+    args = ["transfer", "--gap", "default,none", "--out", str(tmp_path / "out"), "--seconds", "2.6", "--seeds",
+            "0,1,2", "--experiments", "tracking,circle", "--latencies-ms", "0,4", "--sweep-seeds", "0",
+            "--gain-scales", "", "--schemes", "shadow", "--jobs", "1"]
+    monkeypatch.setattr(transfer_eval, "run_one", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        eval_main(args)
+    assert len(calls) == 7
+    monkeypatch.setattr(transfer_eval, "run_one", lambda spec: fake_run(spec, calls))
+    assert eval_main(args) == 0
+    distinct = {spec_key(s) for s in calls}
+    assert len(distinct) == len(calls)  # nothing ran twice
+    first = json.loads((tmp_path / "out" / "transfer.json").read_text())
+    ran = len(calls)
+    assert eval_main(args) == 0
+    assert len(calls) == ran  # the second call re-ran nothing
+    again = json.loads((tmp_path / "out" / "transfer.json").read_text())
+    first["meta"].pop("command"), again["meta"].pop("command")
+    assert again == first
+    # the layout: the first profile at the top, every profile under "profiles", the bars per scheme
+    assert first["tracking"] == first["profiles"]["default"]["tracking"]
+    assert first["profiles"]["none"]["tracking"]["shadow"]["joint_rmse"] == pytest.approx(0.003)
+    assert first["tracking"]["shadow"]["joint_rmse"] == pytest.approx(0.003 * (1 + 2.0 + 1.0), rel=1e-6)
+    assert first["profiles"]["none"]["tracking"]["shadow"]["joint_rmse_std"] < 1e-15  # one deterministic run
+    assert first["acceptance"]["shadow"]["none"] == {"value": pytest.approx(0.003), "limit": 0.01, "pass": True,
+                                                     "profile": "none"}
+    assert first["sweeps"]["latency_tolerance_ms"] == {"direct": 4.0, "shadow": 4.0}
+    assert first["recommended"] == "shadow"
+    assert "| none | shadow |" in (tmp_path / "out" / "transfer.md").read_text()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--gap", "default,,none"], "--gap: an empty profile name"),
+    (["--gap", "none,none"], "--gap: 'none' given twice"),
+    (["--gap", "none", "--suite", "acceptance"], "--gap and --suite: give one"),
+    (["--gap", "default,no_such_profile"], "no_such_profile"),
+])
+def test_bad_profile_lists_are_named(tmp_path, capsys, args, message):
+    assert eval_main(["transfer", "--out", str(tmp_path / "x"), *args]) == 1
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
+def test_bruce_eval_transfer_runs_without_torch_or_matplotlib(tmp_path):
+    """The base install (`pip install -e .`) has neither: the rehearsal needs only onnxruntime and MuJoCo."""
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['torch'] = None; sys.modules['matplotlib'] = None\n"
+            "from training.eval_cli import main\n"
+            f"raise SystemExit(main(['transfer', '--gap', 'default', '--out', {str(tmp_path)!r}, '--seconds', '2.5', "
+            "'--seeds', '0', '--experiments', 'tracking', '--latencies-ms', '', '--gain-scales', '', "
+            "'--schemes', 'direct', '--jobs', '1']))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert (tmp_path / "transfer.json").exists() and "no figures (matplotlib is not installed" in done.stdout

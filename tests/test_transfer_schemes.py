@@ -1,5 +1,5 @@
-"""The transfer stage's schemes (runtime/transfer_schemes.py), their gains (runtime/transfer_gains.py) and the
-perfect-model reference (runtime/reference_models.py)."""
+"""The transfer stage's schemes (runtime/transfer_schemes.py), their gains (runtime/transfer_gains.py), the
+perfect-model reference (runtime/reference_models.py) and the nominal twin (runtime/nominal_twin.py)."""
 
 import math
 
@@ -13,7 +13,7 @@ from runtime.inference import ModelError
 from runtime.mixing import eq8_torque
 from runtime.reference_models import NominalReference
 from runtime.transfer_gains import joint_inertia, observer_gain, pd_crossover, pd_gains, shortest_observer_time_constant
-from runtime.transfer_schemes import Eq9Scheme, ObserverScheme, ShadowScheme, TransferScheme, build_scheme
+from runtime.transfer_schemes import Eq9Scheme, ObserverScheme, ShadowScheme, TransferScheme, TwinScheme, build_scheme
 
 DT = 1e-3
 
@@ -339,6 +339,7 @@ def test_pinn_residual_bias_is_per_joint_bounded_and_reaches_the_observer():
 
 def test_transfer_pinn_and_eq9_are_the_same_run():
     from runtime.commands import CommandSchedule
+    from runtime.observers import EachTick
     from runtime.run import run_session
 
     config = load_config()
@@ -347,11 +348,158 @@ def test_transfer_pinn_and_eq9_are_the_same_run():
         sent = []
         run_session(MujocoBackend(config), config, duration=0.3, realtime=False, transfer=name,
                     commands=CommandSchedule.constant(0.3, 0.0, 0.0),
-                    recorder=lambda tick, q, qd, tau, sent=sent: sent.append(tau.copy()))
+                    observers=[EachTick(lambda view, sent=sent: sent.append(view.tau.copy()))])
         torques[name] = np.array(sent)
     np.testing.assert_array_equal(torques["pinn"], torques["eq9"])
     direct = []
     run_session(MujocoBackend(config), config, duration=0.3, realtime=False,
                 commands=CommandSchedule.constant(0.3, 0.0, 0.0),
-                recorder=lambda tick, q, qd, tau: direct.append(tau.copy()))
+                observers=[EachTick(lambda view: direct.append(view.tau.copy()))])
     assert np.abs(np.array(direct) - torques["eq9"]).max() > 0.01  # Eq. 9 does act
+
+
+class ScriptedTwin:
+    """A nominal twin whose posture at each tick is given; records what the scheme hands it."""
+
+    def __init__(self, postures):
+        self.postures = [np.array(p, float) for p in postures]
+        self.q = None
+        self.advanced = []
+        self.resets = 0
+        self.resync_requested = False
+
+    def reset(self):
+        self.resets += 1
+        self.q = None
+
+    def advance(self, a, q, qd, command, last_torque):
+        self.advanced.append((a, command, None if last_torque is None else last_torque.copy(), q.copy()))
+        self.q = self.postures.pop(0)
+
+
+def test_twin_integrates_the_posture_offset_from_the_twin_clips_holds_and_resets():
+    twin = ScriptedTwin([[0.1, 0.1], [0.3, -0.2], [0.5, -0.2], [0.0, 0.0], [0.0, 0.0]])
+    scheme = TwinScheme(TransferScheme(), twin, gain=np.array([2.0, 2.0]), clip=np.array([0.5, 10.0]), hold_ticks=1)
+    scheme.reset()
+    tau_star, command = np.array([1.0, -1.0]), np.array([0.4, 0.0, 0.0])
+    q = np.zeros(2)
+    scheme.predict(np.zeros(2), q, q, tau_star, command)  # no twin posture yet: nothing to integrate
+    np.testing.assert_array_equal(scheme.torque(tau_star, q, q), tau_star)
+    scheme.predict(np.zeros(2), q, q, tau_star, command)  # offset 0.1, 0.1 from the twin: u = 2 * offset
+    np.testing.assert_allclose(scheme.u, [0.2, 0.2])
+    np.testing.assert_allclose(scheme.torque(tau_star, q, q), [1.2, -0.8])  # tau* + u
+    scheme.predict(np.zeros(2), np.array([0.1, 0.0]), q, tau_star, command)  # offset 0.2, -0.2: adds 0.4, -0.4
+    np.testing.assert_allclose(scheme.u, [0.5, -0.2])  # 0.6 clipped to 0.5
+    np.testing.assert_allclose(twin.advanced[-1][2], [1.2, -0.8])  # the twin's rate limit starts from what was sent
+    assert twin.advanced[-1][1] is command  # the twin runs on the robot's command
+    scheme.reset()
+    assert not scheme.u.any() and twin.resets == 2 and twin.q is None
+
+
+def test_twin_holds_its_torque_until_the_hold_ends():
+    twin = ScriptedTwin([[1.0]] * 5)
+    scheme = TwinScheme(TransferScheme(), twin, gain=np.array([1.0]), clip=np.array([10.0]), hold_ticks=3)
+    scheme.reset()
+    for _ in range(3):
+        scheme.predict(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1))
+        assert scheme.u[0] == 0.0
+    scheme.predict(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1))
+    assert scheme.u[0] == pytest.approx(1.0)
+
+
+def test_an_offset_beyond_the_disturbance_bound_is_not_integrated_and_resyncs_the_twin():
+    twin = ScriptedTwin([[0.05], [0.5], [0.05], [0.05]])
+    scheme = TwinScheme(TransferScheme(), twin, gain=np.array([1.0]), clip=np.array([10.0]), hold_ticks=0,
+                        disturbance=0.3)
+    scheme.reset()
+    zero = np.zeros(1)
+    scheme.predict(zero, zero, zero, zero)
+    scheme.predict(zero, zero, zero, zero)  # offset 0.05: a gap, integrated
+    assert scheme.u[0] == pytest.approx(0.05) and not twin.resync_requested
+    scheme.predict(zero, zero, zero, zero)  # offset 0.5: a push the twin did not feel
+    assert scheme.u[0] == pytest.approx(0.05) and twin.resync_requested
+    scheme.predict(zero, zero, zero, zero)
+    assert scheme.u[0] == pytest.approx(0.10)
+
+
+def test_shadow_twin_adds_the_integral_to_the_shadows_pd():
+    model = RecordingModel([([0.01, 0.02], [0.1, 0.2]), ([0.0, 0.0], [0.0, 0.0])])
+    shadow = ShadowScheme(model, GAINS, EQ8, resync_ticks=5)
+    twin = ScriptedTwin([[0.1, 0.0], [0.0, 0.0]])
+    scheme = TwinScheme(shadow, twin, gain=np.array([1.0, 1.0]), clip=np.array([5.0, 5.0]), hold_ticks=0)
+    scheme.reset()
+    a, q, qd, tau_star = np.array([0.5, -0.5]), np.zeros(2), np.zeros(2), np.array([2.0, 2.0])
+    scheme.predict(a, q, qd, tau_star)
+    scheme.torque(tau_star, q, qd)
+    scheme.predict(a, q, np.array([0.05, 0.1]), tau_star)  # shadow PD [0.15, 0.6] (as above), twin offset 0.1, 0
+    np.testing.assert_allclose(scheme.torque(tau_star, q, np.array([0.05, 0.1])), [2.0 + 0.15 + 0.1, 2.0 + 0.6])
+    assert scheme.q_hat is shadow.q_hat and scheme.name == "shadow_twin"
+
+
+def run_with_twin(config, gap, ticks):
+    """The run loop's stages by hand (read, policy every 10th tick, Eq. 8, the scheme, safety, write) with the `twin`
+    scheme; per tick the twin's posture error and the integral."""
+    from runtime.controllers import build_controller
+    from runtime.estimation import GroundTruthEstimator
+    from runtime.safety import SafetyStage
+
+    backend = MujocoBackend(config, gap=gap)
+    backend.configure()
+    controller, _ = build_controller(config, None, "policy")
+    estimator = GroundTruthEstimator(backend)
+    safety = SafetyStage(config)
+    scheme = build_scheme(config, "twin", base_state=backend.ground_truth)
+    backend.activate()
+    controller.reset(backend.ground_truth().joint_q)
+    scheme.reset()
+    command = np.array([0.3, 0.0, 0.0])
+    offsets, integral = [], []
+    for tick in range(ticks):
+        state = backend.read()
+        q, qd = state.joints.q, state.joints.qd
+        if tick % config.policy_decimation == 0:
+            a = controller(state, estimator.estimate(), command)
+        if scheme.twin.q is not None:
+            offsets.append(np.abs(scheme.twin.q - q).max())
+        tau_star = eq8_torque(a, q, qd, config.eq8)
+        scheme.predict(a, q, qd, tau_star, command)
+        backend.write(JointCommand(tau_ff=safety.filter(scheme.torque(tau_star, q, qd), state)))
+        integral.append(np.abs(scheme.u).max())
+    return np.array(offsets), np.array(integral), scheme
+
+
+def test_where_the_robot_is_the_simulator_the_twin_is_the_robot_and_adds_no_torque():
+    config = load_config(overrides=["transfer.twin.resync_s=0.1"])
+    offsets, integral, scheme = run_with_twin(config, None, 400)
+    assert scheme.twin.tick == 400 and scheme.hold_ticks == 100  # three resyncs after the hold were exercised
+    assert offsets.max() < 1e-9  # the twin reproduces the nominal mock, torque ramp and rate limit included
+    assert integral.max() < 1e-12  # N·m: rounding
+
+
+def test_with_a_gap_the_twin_sees_an_offset_and_the_integral_acts_within_its_clip():
+    from bruce_hw.reality_gap import load_gap
+
+    config = load_config(overrides=["transfer.twin.resync_s=0.1", "transfer.twin.time_constant_s=1"])
+    offsets, integral, scheme = run_with_twin(config, load_gap("default"), 400)
+    assert offsets.max() > 1e-3
+    assert not integral[:100].any() and integral[-1] > 0.0  # held until the first resync after the torque ramp
+    assert np.all(np.abs(scheme.u) <= scheme.clip)
+
+
+def test_build_twin_schemes_read_the_config_and_need_the_mock():
+    config = load_config(overrides=["transfer.twin.resync_s=0.5", "transfer.twin.time_constant_s=4",
+                                    "transfer.twin.clip=0.1"])
+    backend = MujocoBackend(config)
+    backend.configure()
+    twin = build_scheme(config, "twin", base_state=backend.ground_truth)
+    assert isinstance(twin, TwinScheme) and type(twin.inner) is TransferScheme and twin.name == "twin"
+    assert twin.twin.resync_ticks == 500 and twin.hold_ticks == 500
+    np.testing.assert_allclose(twin.gain, config.eq8.kp * config.dt / 4.0)
+    np.testing.assert_allclose(twin.clip, 0.1 * config.tau_limit)
+    assert isinstance(build_scheme(config, "shadow_twin", base_state=backend.ground_truth).inner, ShadowScheme)
+    with pytest.raises(ModelError, match="only the mock"):
+        build_scheme(config, "twin", base_state=lambda: None)
+    with pytest.raises(ConfigError, match=r"transfer\.twin\.time_constant_s: expected a number in \[1, 60\] s"):
+        load_config(overrides=["transfer.twin.time_constant_s=0.5"])
+    with pytest.raises(ConfigError, match=r"transfer\.twin\.clip: expected a number in \(0, 1\]"):
+        load_config(overrides=["transfer.twin.clip=0"])

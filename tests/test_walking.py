@@ -61,7 +61,7 @@ class PushedAt:
 @pytest.mark.parametrize("kind", ["teacher", "policy"])
 @pytest.mark.parametrize("side", [1.0, -1.0])
 def test_a_lateral_push_while_walking_is_survived(config, kind, side):
-    from runtime.run import build_controller
+    from runtime.controllers import build_controller
 
     backend = MujocoBackend(config)
     controller, _ = build_controller(config, None, kind)

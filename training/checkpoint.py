@@ -105,7 +105,9 @@ def read_checkpoint(path: str | Path) -> dict:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:
-        raise CheckpointError(f"checkpoint {path}: not a readable torch checkpoint ({exc})") from exc
+        # Not torch's message: it runs to many lines and advises weights_only=False, which would run the file's code.
+        raise CheckpointError(f"checkpoint {path}: not a torch checkpoint that loads with weights_only=True "
+                              f"({type(exc).__name__})") from exc
     missing = [key for key in ("kind", "config", "state_dict") if key not in payload]
     if missing:
         raise CheckpointError(f"checkpoint {path}: missing key(s) {missing}")

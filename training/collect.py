@@ -5,7 +5,7 @@
 The committed walking policy (`policy.model` of the config, or --policy) walks the nominal MuJoCo mock through
 the runtime's own session loop (`runtime.run.run_session`: the same read -> policy -> Eq. 8 -> safety ->
 write ticks as `bruce-run --backend mock`, transfer direct, ground-truth base state, unpaced), and a recorder
-hooked into that loop keeps every 1 kHz tick:
+observing that loop (`runtime.observers`) keeps every 1 kHz tick:
 
 - `q`, `qd`: the joint state read at the tick; `tau`: the torque written at the tick, i.e. what the safety stage
   returned, which the mock's motors apply over the next physics step (they saturate it again by actuator and
@@ -19,8 +19,9 @@ hooked into that loop keeps every 1 kHz tick:
 - Episodes: each starts a fresh mock (standing pose, at rest) and a standstill command for the warm-up,
   `safety.soft_start_s` (1.5 s): the torque ramp and the settling from the placed pose are run but NOT
   recorded, so an episode's first sample is the robot standing under the running controller, and the first
-  sampled command starts there. A fall (the runtime's test: base below 0.6 x its nominal standing height, or
-  tilted over 45 deg, from the simulator's truth, checked every tick) ends the episode: its last 0.5 s before
+  sampled command starts there. A fall (`runtime.falls`, the one definition every evaluation uses: base below
+  0.6 x its nominal standing height, or tilted over 45 deg, from the simulator's truth; checked every tick here)
+  ends the episode: its last 0.5 s before
   the fall is dropped, and a new episode starts. Episodes run until `--seconds` of samples are kept, so the
   file holds exactly round(seconds x loop_hz) samples.
 
@@ -54,9 +55,11 @@ from bruce_hw.backend import BackendError
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, RobotConfig, load_config
 from bruce_hw.mock import MujocoBackend
 from runtime.commands import COMMAND_AXES, COMMAND_LIMITS, CommandSchedule
-from runtime.estimation import tilt_of
+from runtime.controllers import build_controller
+from runtime.falls import fall_rule
 from runtime.inference import ModelError
-from runtime.run import FALL_HEIGHT_FRACTION, FALL_TILT_RAD, build_controller, run_session
+from runtime.observers import FallStop, TickObserver, TickView
+from runtime.run import run_session
 from training.dataset import Dataset, DatasetError, config_hash, file_sha256, save_dataset
 
 SAMPLE_BOX = {"vx": (-0.5, 1.0), "vy": (-0.5, 0.5), "wz": (-0.5, 0.5)}   # the paper's §IV-B command box
@@ -101,34 +104,27 @@ def sample_command(rng: np.random.Generator) -> tuple[list[float], list[float]]:
     return sampled, clipped
 
 
-class EpisodeRecorder:
-    """The session's per-tick recorder (`run_session(recorder=...)`): copies q, qd and the written torque into
-    preallocated arrays, and ends the session at a fall."""
+class EpisodeRecorder(TickObserver):
+    """An observer of the session's loop: copies q, qd, the written torque and the true base position of every
+    tick into preallocated arrays (a `runtime.observers.FallStop` after it ends the session at a fall)."""
 
-    def __init__(self, backend: MujocoBackend, n_ticks: int, n_joints: int, on_tick: Callable[[int], None]):
-        self.backend = backend
+    def __init__(self, n_ticks: int, n_joints: int, on_progress: Callable[[int], None]):
         self.q = np.empty((n_ticks, n_joints))
         self.qd = np.empty((n_ticks, n_joints))
         self.tau = np.empty((n_ticks, n_joints))
         self.base_xy = np.empty((n_ticks, 2))
         self.ticks = 0
-        self.fell_at: int | None = None
-        self.on_tick = on_tick
+        self.on_progress = on_progress  # called with the tick every PROGRESS_TICKS
 
-    def __call__(self, tick: int, q: np.ndarray, qd: np.ndarray, tau: np.ndarray) -> str | None:
-        self.q[tick] = q
-        self.qd[tick] = qd
-        self.tau[tick] = tau
-        truth = self.backend.ground_truth()
-        self.base_xy[tick] = truth.base_pos[:2]
+    def on_tick(self, view: TickView) -> None:
+        tick = view.tick
+        self.q[tick] = view.q
+        self.qd[tick] = view.qd
+        self.tau[tick] = view.tau
+        self.base_xy[tick] = view.truth.base_pos[:2]
         self.ticks = tick + 1
         if tick % PROGRESS_TICKS == 0:
-            self.on_tick(tick)
-        height = float(truth.base_pos[2])
-        if height < FALL_HEIGHT_FRACTION * self.backend.nominal_base_height or tilt_of(truth.base_quat) > FALL_TILT_RAD:
-            self.fell_at = tick
-            return f"fell at {tick * self.backend.config.dt:.3f} s (base height {height:.3f} m)"
-        return None
+            self.on_progress(tick)
 
 
 class Progress:
@@ -187,16 +183,17 @@ def collect(config: RobotConfig, settings: CollectSettings, *, policy: Path | No
             n_ticks = warmup + target - kept
             schedule, drawn = _episode_commands(rng, n_ticks * dt, config.safety.soft_start_s, settings)
             backend = backend_factory(config)
-            recorder = EpisodeRecorder(backend, n_ticks, config.n_joints,
+            recorder = EpisodeRecorder(n_ticks, config.n_joints,
                                        lambda tick, base=kept: bar.show(base + max(0, tick - warmup)))
+            fall = FallStop()
             with contextlib.redirect_stdout(io.StringIO()):  # run_session's per-run banner and summary
                 summary = run_session(backend, config, duration=n_ticks / hz, realtime=False, controller=controller,
-                                      commands=schedule, recorder=recorder)
+                                      commands=schedule, observers=[recorder, fall])
             if summary.stop_cause in INTERRUPTS:
                 raise KeyboardInterrupt(summary.stop_cause)
             ended_early = summary.stop_cause != "duration reached"
             # A fall is the recorder's last tick; a safety trip stops the loop before the tick is recorded.
-            end = recorder.fell_at if recorder.fell_at is not None else recorder.ticks
+            end = fall.fell_at if fall.fell_at is not None else recorder.ticks
             stop = max(warmup, end - trim) if ended_early else recorder.ticks
             falls += ended_early
             if stop - warmup < 2:  # no transition left to learn from
@@ -245,8 +242,7 @@ def collect(config: RobotConfig, settings: CollectSettings, *, policy: Path | No
                      "clipped_to": {k: list(v) for k, v in POLICY_CLIP.items()},
                      "segment_s": settings.segment_s, "ramp_s": settings.ramp_s},
         "warmup_s": config.safety.soft_start_s,
-        "fall": {"base_height_below": f"{FALL_HEIGHT_FRACTION} x nominal standing height",
-                 "tilt_above_rad": FALL_TILT_RAD, "trim_s": settings.fall_trim_s},
+        "fall": {**fall_rule(), "trim_s": settings.fall_trim_s},
         "episodes": episodes,
         "segments": segments,
         "package_version": package_metadata.version("bruce-sim2real"),

@@ -4,7 +4,8 @@
 
 The student sees exactly what the runtime's policy sees: the paper's Table I observation built by
 `runtime.policy.ObservationBuilder` (clock, command, q, q', base linear and angular velocity, Euler angles, last
-action) and outputs a_t, which goes through the same Eq. 8 PD and safety filter at 1 kHz in the MuJoCo mock.
+action) and outputs a_t, which goes through the runtime's own loop (`runtime.run.run_session`: Eq. 8, the safety
+stage) at 1 kHz in the MuJoCo mock.
 
 DAgger (Ross et al. 2011): round 0 rolls out the teacher; in round k the executed action is the teacher's with
 probability beta_k = beta_decay^k, else the student's, and the teacher labels every visited state. The dataset
@@ -21,8 +22,11 @@ to where north is.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import io
 import json
+import logging
 import math
 import sys
 import time
@@ -33,16 +37,17 @@ import numpy as np
 import torch
 from torch import nn
 
+from bruce_hw.backend import LifecycleState
 from bruce_hw.config import RobotConfig, load_config
 from bruce_hw.mock import MujocoBackend
-from bruce_hw.types import JointCommand
 from runtime.commands import COMMAND_LIMITS, CommandSchedule
-from runtime.estimation import GroundTruthEstimator, tilt_of
-from runtime.kinematic_estimator import KinematicEstimator
-from runtime.mixing import eq8_torque
+from runtime.estimation import GroundTruthEstimator
+from runtime.observers import FallStop, TickObserver, TickView
 from runtime.policy import ObservationBuilder
-from runtime.safety import SafetyStage
+from runtime.run import run_session
 from runtime.walking.teacher import WalkingTeacher
+
+INTERRUPTS = ("SIGINT", "SIGTERM")  # stop causes that end the distillation, not just the episode
 
 
 @dataclass(frozen=True)
@@ -66,8 +71,7 @@ class DistillSettings:
     epochs: int = 20                       # per round, over the aggregated dataset
     batch_size: int = 1024
     learning_rate: float = 1e-3
-    fall_height: float = 0.25              # m: an episode ends when the base drops below this or tilts > 45 deg
-    fall_trim_s: float = 0.5               # s of samples dropped before a fall
+    fall_trim_s: float = 0.5               # s of samples dropped before a fall (runtime.falls) or a safety trip
     # Where the student's base state comes from: "truth" (the simulator's) or "kinematic" (the robot-side
     # estimator on the same sensors, runtime.kinematic_estimator). The teacher always labels from the truth.
     observe: str = "truth"
@@ -120,6 +124,7 @@ class EpisodeResult:
     teacher_actions: np.ndarray
     seconds: float
     fell: bool
+    stop_cause: str = ""
 
 
 def sample_commands(settings: DistillSettings, rng: np.random.Generator) -> CommandSchedule:
@@ -145,71 +150,102 @@ def sample_commands(settings: DistillSettings, rng: np.random.Generator) -> Comm
     return CommandSchedule(segments, name="sampled commands")
 
 
-def rollout(config: RobotConfig, settings: DistillSettings, rng: np.random.Generator, beta: float,
-            student: StudentPolicy | None) -> EpisodeResult:
-    """One episode in the mock at 1 kHz: the executed a_t is the teacher's with probability beta (per policy tick),
-    else the student's, plus noise; every policy tick is labelled with the teacher's a_t."""
-    backend = MujocoBackend(config)
-    backend.configure()
-    backend.activate()
-    estimator = GroundTruthEstimator(backend)
-    observer = KinematicEstimator(config) if settings.observe == "kinematic" else None
-    teacher = WalkingTeacher(config)
-    builder = ObservationBuilder(config)
-    safety = SafetyStage(config)
-    commands = sample_commands(settings, rng)
-    robot = backend.read()
-    teacher.reset(robot.joints.q)
-    estimator.reset(robot)
-    if observer is not None:
-        observer.reset(robot)
-    last_action = robot.joints.q.copy()  # as runtime.policy.PolicyController starts
-    decimation = config.policy_decimation
-    n_ticks = round(settings.episode_s * config.loop_hz)
-    next_push = float(rng.uniform(*settings.push_interval_s))
-    obs_log, label_log = [], []
-    fell = False
-    a = last_action
-    tick = 0
-    for tick in range(n_ticks):
-        t = tick * config.dt
-        estimator.update(robot)
-        if observer is not None:
-            observer.update(robot)
-        if tick % decimation == 0:
-            base = estimator.estimate()
-            seen = base if observer is None else observer.estimate()
-            command = commands.at(t)
-            obs = builder.build(command, robot, seen, last_action)
-            label = teacher(robot, base, command)
-            obs_log.append(obs)
-            label_log.append(label)
-            if student is not None and rng.random() >= beta:
-                with torch.no_grad():
-                    a = student(torch.as_tensor(obs, dtype=torch.float32)[None])[0].double().numpy()
-            else:
-                a = label
-            a = a + rng.normal(0.0, settings.action_noise_rad, size=a.shape)
-            last_action = a
-        if t >= next_push:
+class DaggerController:
+    """The controller of a DAgger episode (anything `run_session` runs: reset(q), __call__(state, base, command)).
+
+    On each policy tick it labels the state with the teacher's a_t (the teacher plans on the simulator's truth),
+    then executes the teacher's a_t with probability beta, else the student's (which sees the loop's base estimate:
+    the truth, or the kinematic estimator with `--observe kinematic`), plus Gaussian noise. `obs` and `labels`
+    hold what the episode taught, from the last reset on."""
+
+    def __init__(self, config: RobotConfig, settings: DistillSettings, rng: np.random.Generator, beta: float,
+                 student: StudentPolicy | None, truth_of: MujocoBackend | None = None):
+        self.teacher = WalkingTeacher(config)
+        self.builder = ObservationBuilder(config)
+        self.student, self.beta, self.rng = student, beta, rng
+        self.noise_rad = settings.action_noise_rad
+        self.truth_of = truth_of  # the mock whose truth the teacher plans on; None: the loop's estimate is the truth
+        self.truth: GroundTruthEstimator | None = None
+        self.reset(config.standing_pose)
+
+    def reset(self, q: np.ndarray) -> None:
+        """Before the episode (the mock is configured by then)."""
+        if self.truth_of is not None and self.truth_of.state is not LifecycleState.UNCONFIGURED:
+            self.truth = GroundTruthEstimator(self.truth_of)
+        self.teacher.reset(q)
+        self.builder.reset()
+        self.last_action = np.array(q, dtype=float)  # as runtime.policy.PolicyController starts
+        self.obs: list[np.ndarray] = []
+        self.labels: list[np.ndarray] = []
+
+    def __call__(self, state, base, command: np.ndarray) -> np.ndarray:
+        obs = self.builder.build(command, state, base, self.last_action)
+        label = self.teacher(state, base if self.truth is None else self.truth.estimate(), command)
+        self.obs.append(obs)
+        self.labels.append(label)
+        if self.student is not None and self.rng.random() >= self.beta:
+            with torch.no_grad():
+                a = self.student(torch.as_tensor(obs, dtype=torch.float32)[None])[0].double().numpy()
+        else:
+            a = label
+        a = a + self.rng.normal(0.0, self.noise_rad, size=a.shape)
+        self.last_action = a
+        return a
+
+
+class RandomPushes(TickObserver):
+    """A disturbance riding on the loop's observer hook: pushes the mock's base (`MujocoBackend.push`) in a random
+    horizontal direction every `push_interval_s` (uniform), with an impulse drawn from `push_impulse_ns`."""
+
+    def __init__(self, settings: DistillSettings, rng: np.random.Generator):
+        self.settings, self.rng = settings, rng
+        self.next_push = float(rng.uniform(*settings.push_interval_s))
+        self.backend: MujocoBackend | None = None
+
+    def on_start(self, backend: MujocoBackend, config: RobotConfig) -> None:
+        self.backend = backend
+
+    def on_tick(self, view: TickView) -> None:
+        t = view.elapsed
+        if t >= self.next_push:
+            settings, rng = self.settings, self.rng
             angle = rng.uniform(0.0, 2.0 * math.pi)
             impulse = rng.uniform(*settings.push_impulse_ns)
-            backend.push(np.array([impulse * math.cos(angle), impulse * math.sin(angle), 0.0]),
-                         settings.push_duration_s)
-            next_push = t + float(rng.uniform(*settings.push_interval_s))
-        tau = safety.filter(eq8_torque(a, robot.joints.q, robot.joints.qd, config.eq8), robot)
-        backend.write(JointCommand(tau_ff=tau))
-        robot = backend.read()
-        truth = backend.ground_truth()
-        if truth.base_pos[2] < settings.fall_height or tilt_of(truth.base_quat) > math.pi / 4:
-            fell = True
-            break
-    backend.shutdown()
-    if fell:  # the teacher's labels while falling teach nothing worth copying
+            self.backend.push(np.array([impulse * math.cos(angle), impulse * math.sin(angle), 0.0]),
+                              settings.push_duration_s)
+            self.next_push = t + float(rng.uniform(*settings.push_interval_s))
+
+
+def rollout(config: RobotConfig, settings: DistillSettings, rng: np.random.Generator, beta: float,
+            student: StudentPolicy | None) -> EpisodeResult:
+    """One episode in the mock through the runtime's loop (`runtime.run.run_session`: Eq. 8 and the safety stage
+    at 1 kHz, as every run): the DAgger controller executes teacher or student per policy tick and labels every
+    one with the teacher's a_t; random pushes; the episode ends at a fall (`runtime.falls`), a safety trip or its
+    duration. The labels of its last `fall_trim_s` are dropped when it ends early."""
+    backend = MujocoBackend(config)
+    commands = sample_commands(settings, rng)
+    pushes = RandomPushes(settings, rng)
+    kinematic = settings.observe == "kinematic"
+    controller = DaggerController(config, settings, rng, beta, student, truth_of=backend if kinematic else None)
+    runtime_log = logging.getLogger("runtime")
+    saved_level = runtime_log.level
+    runtime_log.setLevel(logging.WARNING)  # a "torque ramp done" line per episode says nothing here
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):  # run_session's per-run banner and summary
+            summary = run_session(backend, config, duration=settings.episode_s, realtime=False,
+                                  controller=controller, estimator="kinematic" if kinematic else "truth",
+                                  commands=commands, observers=[pushes, FallStop()])
+    finally:
+        runtime_log.setLevel(saved_level)
+    if summary.stop_cause in INTERRUPTS:
+        raise KeyboardInterrupt(summary.stop_cause)
+    obs_log, label_log = controller.obs, controller.labels
+    if summary.stop_cause != "duration reached":  # the teacher's labels while falling teach nothing worth copying
         keep = max(0, len(obs_log) - round(settings.fall_trim_s * config.policy_hz))
         obs_log, label_log = obs_log[:keep], label_log[:keep]
-    return EpisodeResult(np.array(obs_log).reshape(-1, builder.size), np.array(label_log).reshape(-1, config.n_joints),
-                         (tick + 1) * config.dt, fell)
+    return EpisodeResult(np.array(obs_log).reshape(-1, controller.builder.size),
+                         np.array(label_log).reshape(-1, config.n_joints), summary.ticks * config.dt,
+                         bool(summary.truth.fell), summary.stop_cause or "")
 
 
 def make_student(config: RobotConfig, settings: DistillSettings, obs: np.ndarray,

@@ -77,7 +77,6 @@ import torch
 from torch import nn
 
 from bruce_hw.config import ConfigError, RobotConfig
-from training import transfer_eval
 from training.checkpoint import MODEL_KINDS, CheckpointError, load_model_checkpoint
 from training.dataset import DatasetError, file_sha256, load_dataset, split_by_time
 from training.eval_report import BOUND_FACTOR, bar_k, json_safe, markdown_table, plot_fig4, plot_fig5
@@ -556,35 +555,6 @@ def parse_ks(text: str) -> tuple[int, ...]:
     return tuple(ks)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="bruce-eval", description="Evaluate learned dynamics models "
-                                     "(dynamics) and rehearse their sim-to-real transfer (transfer).")
-    commands = parser.add_subparsers(dest="command", required=True)
-    p = commands.add_parser("dynamics", help="held-out NMSE and per-step compute of dynamics models",
-                            description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", type=Path, required=True, help="dataset .npz (bruce-collect)")
-    p.add_argument("--model", action="append", required=True, metavar="NAME=CKPT[,CKPT...]",
-                   help="a model name and its checkpoints (several: mean ± std); repeatable")
-    p.add_argument("--out", type=Path, required=True, help="directory for the JSON, Markdown and PNG outputs")
-    p.add_argument("--k", default="10,100,1000", help="open-loop horizons (default: %(default)s)")
-    p.add_argument("--starts", type=int, default=100, help="open-loop start points (default: %(default)s)")
-    p.add_argument("--start-seed", type=int, default=None,
-                   help="draw the start points at random with this seed (default: evenly spaced)")
-    p.add_argument("--warmup", type=int, default=200, help="teacher-forced warm-up steps W (default: %(default)s)")
-    p.add_argument("--chunk", type=int, default=1000,
-                   help="one-step: transitions per teacher-forced chunk (default: %(default)s)")
-    p.add_argument("--onnx", action="append", default=[], metavar="NAME=FILE",
-                   help="the ONNX export of a model's first checkpoint, for the onnxruntime timing and parity "
-                        "(default: exported by the kind's exporter)")
-    p.add_argument("--no-onnx", action="store_true", help="skip the onnxruntime timing")
-    p.add_argument("--timing-calls", type=int, default=2000,
-                   help="timed calls per contender, 0 to skip timing (default: %(default)s)")
-    p.add_argument("--train-fraction", type=float, default=0.8, help="the split (default: %(default)s)")
-    p.add_argument("--config", default=None, help="robot config the data must match (default: BRUCE's)")
-    transfer_eval.add_parser(commands)
-    return parser
-
-
 def run_dynamics(args: argparse.Namespace, argv: Sequence[str]) -> int:
     from bruce_hw.config import DEFAULT_CONFIG, load_config
 
@@ -685,11 +655,8 @@ def run_dynamics(args: argparse.Namespace, argv: Sequence[str]) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
-    if args.command == "transfer":
-        return transfer_eval.run_transfer(args, argv)
+def main_dynamics(args: argparse.Namespace, argv: Sequence[str]) -> int:
+    """`bruce-eval dynamics` (the parser is `training.eval_cli`'s, which loads torch only for this command)."""
     # One intra-op thread: the rollouts are long chains of small batched calls, where a second thread only adds
     # synchronisation (measured ~10-50x slower on the shared 2-core VM); the timing is per-thread anyway.
     threads = torch.get_num_threads()
@@ -701,7 +668,3 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     finally:
         torch.set_num_threads(threads)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

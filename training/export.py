@@ -1,7 +1,7 @@
 """ONNX export of the PINN step and of the walking policy, for the torch-free 1 kHz runtime.
 
 Every export uses the legacy TorchScript exporter (`dynamo=False`, pinned: torch's default flipped to the dynamo
-exporter, and for the PINN the legacy graph is smaller and faster; research anchors §8), a fixed batch of 1 and
+exporter, and for the PINN the legacy graph is smaller and faster), a fixed batch of 1 and
 no dynamic axes. The file is then loaded back, checked with `onnx.checker`, its input/output names, shapes and
 dtypes are verified, and a sidecar `<file>.json` records the versions, opset and the file's SHA-256, so the
 runtime can tell which model it is running.
@@ -215,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     """bruce-export: a trained checkpoint (bruce-train) -> ONNX for the runtime, with a parity check."""
     import argparse
 
-    from training.checkpoint import MODEL_KINDS, load_model_checkpoint
+    from training.checkpoint import MODEL_KINDS, CheckpointError, load_model_checkpoint
 
     parser = argparse.ArgumentParser(prog="bruce-export", description="Export a trained dynamics checkpoint to "
                                      "ONNX (one tick per call, explicit LSTM state) and check torch/onnxruntime "
@@ -224,7 +224,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", required=True, help="ONNX file to write (its sidecar goes to <out>.json)")
     parser.add_argument("--tolerance", type=float, default=1e-5, help="worst allowed |torch - ORT| (default 1e-5)")
     args = parser.parse_args(argv)
-    model, payload = load_model_checkpoint(args.checkpoint)
+    try:
+        model, payload = load_model_checkpoint(args.checkpoint)
+    except CheckpointError as exc:
+        print(f"bruce-export: error: {exc}", file=sys.stderr)
+        return 2
     exporter = MODEL_KINDS[payload["kind"]].onnx_exporter()
     if exporter is None:
         exportable = sorted(kind for kind, entry in MODEL_KINDS.items() if entry.exporter)

@@ -16,8 +16,8 @@ For export, `folded()` returns the same module with its constant scaling stages 
 (the inputs' 1/std into the ResNet's first layer and the LSTM's input weights, the head's denormalisation into
 the head, the tril placement, bI and sqrt(dt) into the ResNet's output layer; the centring stays, because a
 mean folded into a bias cancels large terms in float32). Same math, 30 instead of 38
-kernels after onnxruntime's fusions: at 1 kHz the per-kernel cost, not FLOPs, sets the tick's latency (research
-anchors §9).
+kernels after onnxruntime's fusions: at 1 kHz the per-kernel cost, not FLOPs, sets the tick's latency
+(`bench/bench_pinn_step.py`).
 
 Joint-range stop. The simulator the PINN imitates stops every joint at its MJCF range, softly (MuJoCo's limit
 constraint lets walking push a straight knee 0.065-0.133 rad past 0). The network alone knows nothing of this: in a

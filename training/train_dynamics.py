@@ -40,10 +40,11 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from bruce_hw.config import load_config
-from training.checkpoint import build_model, read_checkpoint, save_checkpoint
+from bruce_hw.config import ConfigError, load_config
+from training.checkpoint import CheckpointError, build_model, read_checkpoint, save_checkpoint
 from training.dataset import (
     Dataset,
+    DatasetError,
     DatasetStats,
     compute_stats,
     file_sha256,
@@ -261,10 +262,14 @@ def main(argv: list[str] | None = None) -> int:
     settings = {**TRAIN_PRESETS[args.preset], "seed": args.seed}
     if args.epochs is not None:
         settings["epochs"] = args.epochs
-    result = train(args.data, args.model, args.out, model_config=MODEL_PRESETS[args.preset][args.model],
-                   train_config=TrainConfig(**settings), robot_config=load_config(args.config) if args.config
-                   else None, resume=args.resume, progress=not args.no_progress,
-                   command=shlex.join(["bruce-train", *(sys.argv[1:] if argv is None else argv)]))
+    try:
+        result = train(args.data, args.model, args.out, model_config=MODEL_PRESETS[args.preset][args.model],
+                       train_config=TrainConfig(**settings), robot_config=load_config(args.config) if args.config
+                       else None, resume=args.resume, progress=not args.no_progress,
+                       command=shlex.join(["bruce-train", *(sys.argv[1:] if argv is None else argv)]))
+    except (DatasetError, CheckpointError, ConfigError) as exc:
+        print(f"bruce-train: error: {exc}", file=sys.stderr)
+        return 2
     history = result["train"]["history"]
     if not history:
         print(f"bruce-train: analytic identified: {json.dumps(result['identification'])} -> {args.out}")

@@ -20,8 +20,23 @@ Sweeps: the tracking RMSE as the actuator latency grows and as the Eq. 9 gains a
 
 Every metric is scored after the start-up transient (`runtime.run.TRACKING_SKIP_S`), on the simulator's ground
 truth (joint angles and base pose without the gap's sensor noise or latency). A run ends where it falls (the
-safety stage trips on tilt); its metrics cover the part before. Output: DIR/transfer.json (per experiment and
-mode: `joint_rmse`, `mean_radial_deviation`, `fell`, `falls`, `drift`, ...), DIR/transfer.md, PNG figures.
+safety stage trips on tilt); its metrics cover the part before. Per run: `joint_rmse` and its split into `offset`
+(RMS over joints of each joint's mean error) and `shape` (RMS of the rest; offset² + shape² = RMSE² per joint); on
+the circle `mean_radial_deviation` from the ideal circle and `mean_deviation_from_simulator`, the distance from the
+nominal run's base position at the same tick (the simulator itself misses the ideal circle by ~0.1 m, so only the
+latter measures transfer).
+
+Profiles: `--gap A,B,...` or `--suite NAME` (`SUITES`) evaluates each profile; the sweeps run on the first. Output:
+DIR/transfer.json keeps the one-profile layout for the first profile (per experiment and mode: `joint_rmse`,
+`mean_radial_deviation`, `fell`, `falls`, `drift`, ...; `sweeps`), plus `recommended` and `acceptance` (per mode,
+each bar of issue 20 with value, limit and pass: `training.transfer_acceptance`), and with several profiles
+`profiles.<name>` holding each profile's report in that same layout (the first's too). DIR/transfer.md, PNG figures
+(the first profile). Each run's metrics are cached under DIR/runs (`training.transfer_cache`): a second call with
+the same DIR runs only what is missing, so an interrupted suite resumes. The whole acceptance table is one command:
+
+    bruce-eval transfer --suite acceptance --experiments tracking,circle --seeds 0,1,2 --sweep-seeds 0,1 \\
+        --latencies-ms 4,6,7 --gain-scales '' --schemes pinn,shadow,shadow@nominal,observer,observer@nominal \\
+        --out DIR
 """
 
 from __future__ import annotations
@@ -32,7 +47,7 @@ import json
 import math
 import os
 import sys
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,8 +57,10 @@ from bruce_hw.config import DEFAULT_CONFIG, REFERENCE_MODELS, TRANSFER_SCHEMES, 
 from bruce_hw.reality_gap import GapError, RealityGap, latency_ticks, load_gap
 from runtime.commands import CommandSchedule
 from runtime.estimation import euler_of
-from runtime.run import TRACKING_SKIP_S, heading_velocity
+from runtime.observers import TRACKING_SKIP_S, TickObserver, heading_velocity
 from training.eval_report import json_safe
+from training.transfer_acceptance import ONE_FACTOR_PROFILES, acceptance, latency_tolerance, recommended
+from training.transfer_cache import RunCache, spec_key, trace
 
 MODES = ("direct", "pinn")
 LOOKAHEAD_MODE = "pinn_ahead"  # Eq. 9 with the reference rolled ahead over the gap's latency (not the paper's)
@@ -54,6 +71,9 @@ MODE_NAMES = {"direct": "direct (Eq. 8)", "pinn": "PINN (Eq. 9)", LOOKAHEAD_MODE
 DEFAULT_SECONDS = 20.0
 DEFAULT_LATENCIES_MS = (0.0, 2.0, 4.0, 6.0, 8.0, 10.0)
 DEFAULT_GAIN_SCALES = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0)
+# Named lists of profiles (--suite): issue 20's acceptance needs `default` (its bars), `none` (the null test) and the
+# one-factor profiles; `mild` and `harsh` bracket `default`.
+SUITES = {"acceptance": ("default", "none", *ONE_FACTOR_PROFILES, "mild", "harsh")}
 
 
 @dataclass(frozen=True)
@@ -122,13 +142,14 @@ class RunRecord:
     stop_cause: str
     fall_time: float | None = None
     extra: dict = field(default_factory=dict)
+    # the twin metric (runtime.twin_metric): per joint, RMS of (twin q - robot q) at the end of each 10 ms window
+    twin_rmse_per_joint: np.ndarray | None = None
 
 
-class _TruthRecorder:
-    """The run loop's recorder hook: the simulator truth after every tick (evaluation only, never fed back)."""
+class _TruthRecorder(TickObserver):
+    """An observer of the run loop: the simulator truth after every tick (evaluation only, never fed back)."""
 
-    def __init__(self, backend, n_ticks: int, n_joints: int):
-        self.backend = backend
+    def __init__(self, n_ticks: int, n_joints: int):
         self.count = 0
         self.q = np.full((n_ticks, n_joints), np.nan)
         self.qd = np.full((n_ticks, n_joints), np.nan)
@@ -136,12 +157,12 @@ class _TruthRecorder:
         self.pose = np.full((n_ticks, 3), np.nan)
         self.velocity = np.full((n_ticks, 3), np.nan)
 
-    def __call__(self, tick: int, q, qd, tau) -> None:
-        truth = self.backend.ground_truth()
+    def on_tick(self, view) -> None:
         i = self.count
         if i >= len(self.q):
             return None
-        self.q[i], self.qd[i], self.tau[i] = truth.joint_q, truth.joint_qd, tau
+        truth = view.truth
+        self.q[i], self.qd[i], self.tau[i] = truth.joint_q, truth.joint_qd, view.tau
         self.pose[i] = (truth.base_pos[0], truth.base_pos[1], euler_of(truth.base_quat)[2])
         self.velocity[i] = heading_velocity(truth)
         self.count += 1
@@ -152,6 +173,7 @@ def run_one(spec: RunSpec) -> RunRecord:
     """One run of `spec` in a fresh mock; module-level so that a process pool can call it."""
     from bruce_hw.mock import MujocoBackend
     from runtime.run import run_session
+    from runtime.twin_metric import TwinMetric
 
     scheme, model = scheme_of(spec.mode)
     overrides = list(spec.overrides) + ([f"transfer.reference_model={model}"] if model else [])
@@ -164,19 +186,19 @@ def run_one(spec: RunSpec) -> RunRecord:
                                                                         pinn_lookahead_ticks=spec.lookahead))
     backend = MujocoBackend(config, gap=spec.gap if spec.mode != "nominal" else None)
     n_ticks = round(spec.seconds * config.loop_hz)
-    recorder = _TruthRecorder(backend, n_ticks, config.n_joints)
+    recorder, twin = _TruthRecorder(n_ticks, config.n_joints), TwinMetric()
     summary = run_session(backend, config, duration=spec.seconds, realtime=False,
                           transfer=scheme,
                           controller_kind=spec.controller,
                           estimator=spec.estimator, commands=CommandSchedule.constant(*spec.command),
-                          recorder=recorder)
+                          observers=[recorder, twin])
     n = recorder.count
     truth = summary.truth
     fell = bool(truth is not None and truth.fell)
     return RunRecord(spec=spec, t=np.arange(n) * config.dt, q=recorder.q[:n], qd=recorder.qd[:n],
                      tau=recorder.tau[:n], xy=recorder.pose[:n, :2], yaw=np.unwrap(recorder.pose[:n, 2]),
                      velocity=recorder.velocity[:n], fell=fell, stop_cause=summary.stop_cause or "",
-                     fall_time=(n * config.dt) if fell else None)
+                     fall_time=(n * config.dt) if fell else None, twin_rmse_per_joint=twin.rmse_per_joint)
 
 
 # -- metrics ---------------------------------------------------------------------------------------------------
@@ -194,6 +216,32 @@ def joint_rmse(run: RunRecord, reference: RunRecord, skip_s: float = TRACKING_SK
     if len(a) == 0:
         return np.full(run.q.shape[1], np.nan)
     return np.sqrt(np.mean((a - b) ** 2, axis=0))
+
+
+def offset_and_shape(run: RunRecord, reference: RunRecord, skip_s: float = TRACKING_SKIP_S,
+                     what: str = "q") -> tuple[np.ndarray, np.ndarray]:
+    """Each joint's error against the reference (as `joint_rmse` takes it) split in two: the offset, its signed
+    mean over the scored ticks, and the shape, the RMS of the rest; offset² + shape² = RMSE² per joint. [n] each."""
+    shorter = run if len(run.t) <= len(reference.t) else reference
+    part = scored(shorter, skip_s)
+    error = getattr(run, what)[part] - getattr(reference, what)[part]
+    if len(error) == 0:
+        nan = np.full(run.q.shape[1], np.nan)
+        return nan, nan.copy()
+    offset = error.mean(axis=0)
+    return offset, np.sqrt(np.mean((error - offset) ** 2, axis=0))
+
+
+def deviation_from_simulator(run: RunRecord, reference: RunRecord, skip_s: float = TRACKING_SKIP_S) -> dict:
+    """The base path against the simulator's own (the nominal run's): the distance between the two base positions
+    at the same tick, mean and max over the scored ticks both runs reached (m)."""
+    shorter = run if len(run.t) <= len(reference.t) else reference
+    part = scored(shorter, skip_s)
+    distance = np.linalg.norm(run.xy[part] - reference.xy[part], axis=1)
+    if distance.size == 0:
+        return {"mean_deviation_from_simulator": float("nan"), "max_deviation_from_simulator": float("nan")}
+    return {"mean_deviation_from_simulator": float(distance.mean()),
+            "max_deviation_from_simulator": float(distance.max())}
 
 
 def ideal_path(command: tuple[float, float, float], t: np.ndarray, start_xy: np.ndarray, start_yaw: float,
@@ -272,8 +320,15 @@ def run_metrics(record: RunRecord, nominal: RunRecord, experiment: Experiment) -
            else 0.0, "joint_rmse": float(np.mean(per_joint)), "joint_rmse_per_joint": per_joint.tolist(),
            "joint_velocity_rmse": float(np.mean(qd_rmse)), **drift(record, experiment.command),
            **velocity_summary(record, experiment.command)}
+    offset, shape = offset_and_shape(record, nominal)
+    out.update(offset=float(np.sqrt(np.mean(offset ** 2))), shape=float(np.sqrt(np.mean(shape ** 2))),
+               offset_per_joint=offset.tolist(), shape_per_joint=shape.tolist())
+    if record.twin_rmse_per_joint is not None:  # the twin metric (runtime.twin_metric), mean over joints
+        out.update(twin_rmse=float(np.mean(record.twin_rmse_per_joint)),
+                   twin_rmse_per_joint=record.twin_rmse_per_joint.tolist())
     if experiment.command[2] != 0.0 and experiment.command[0] != 0.0:
         out.update(circle_deviation(record, experiment.command))
+        out.update(deviation_from_simulator(record, nominal))
     return out
 
 
@@ -310,6 +365,14 @@ class TransferSettings:
     lookahead: int | str | None = "auto"  # ticks, "auto" (the gap's latency), or None: no look-ahead variant
     schemes: tuple[str, ...] | None = None  # modes to run besides direct (None: Eq. 9 and its look-ahead variant)
     overrides: tuple[str, ...] = ()
+    profiles: tuple[tuple[str, RealityGap], ...] = ()  # (name, gap) of every profile; (): gap_name, gap alone
+
+    def per_profile(self) -> list[TransferSettings]:
+        """The settings of each profile on its own; the sweeps run on the first profile only."""
+        profiles = self.profiles or ((self.gap_name, self.gap),)
+        return [dataclasses.replace(self, gap=gap, gap_name=name, profiles=(),
+                                    **({} if i == 0 else {"latencies_ms": (), "gain_scales": ()}))
+                for i, (name, gap) in enumerate(profiles)]
 
     @property
     def modes(self) -> tuple[str, ...]:
@@ -341,117 +404,185 @@ def _sweep_gap(gap: RealityGap, latency_ms: float) -> RealityGap:
     return dataclasses.replace(gap, actuator_latency_s=latency_ms / 1000.0)
 
 
+EXPERIMENT_BY_NAME = {e.name: e for e in EXPERIMENTS}
+
+
+def _latency_specs(settings: TransferSettings, latency_ms: float, mode: str) -> list[RunSpec]:
+    """The latency sweep's runs of `mode` at `latency_ms`: the tracking command, one per sweep seed."""
+    return [dataclasses.replace(_spec(settings, EXPERIMENT_BY_NAME["tracking"], mode, seed,
+                                      gap=_sweep_gap(settings.gap, latency_ms)), experiment="sweep_latency")
+            for seed in settings.sweep_seeds]
+
+
+def _gain_specs(settings: TransferSettings, scale: float) -> list[RunSpec]:
+    return [dataclasses.replace(_spec(settings, EXPERIMENT_BY_NAME["tracking"], "pinn", seed, eq9_scale=scale),
+                                experiment="sweep_gain") for seed in settings.sweep_seeds]
+
+
 def plan(settings: TransferSettings) -> list[RunSpec]:
-    """Every run the evaluation needs, in a fixed order: per experiment the nominal run, then each mode per
-    seed; then the latency sweep and the Eq. 9 gain sweep on the tracking command."""
-    by_name = {e.name: e for e in EXPERIMENTS}
+    """Every run the evaluation of one profile needs, in a fixed order: per experiment the nominal run, then each
+    mode per seed; then the latency sweep and the Eq. 9 gain sweep on the tracking command."""
     specs = []
     for name in settings.experiments:
-        experiment = by_name[name]
+        experiment = EXPERIMENT_BY_NAME[name]
         specs.append(_spec(settings, experiment, "nominal", None))
         specs += [_spec(settings, experiment, mode, seed) for mode in settings.modes for seed in settings.seeds]
-    tracking = by_name["tracking"]
     if "tracking" not in settings.experiments and (settings.latencies_ms or settings.gain_scales):
-        specs.append(_spec(settings, tracking, "nominal", None))
+        specs.append(_spec(settings, EXPERIMENT_BY_NAME["tracking"], "nominal", None))
     for latency in settings.latencies_ms:
         for mode in settings.modes:
-            for seed in settings.sweep_seeds:
-                spec = _spec(settings, tracking, mode, seed, gap=_sweep_gap(settings.gap, latency))
-                specs.append(dataclasses.replace(spec, experiment="sweep_latency"))
+            specs += _latency_specs(settings, latency, mode)
     for scale in settings.gain_scales if "pinn" in settings.modes else ():
-        for seed in settings.sweep_seeds:
-            spec = _spec(settings, tracking, "pinn", seed, eq9_scale=scale)
-            specs.append(dataclasses.replace(spec, experiment="sweep_gain"))
+        specs += _gain_specs(settings, scale)
     return specs
 
 
-def run_all(specs: list[RunSpec], jobs: int, progress: bool = True) -> list[RunRecord]:
-    if jobs <= 1:
-        records = []
-        for i, spec in enumerate(specs):
-            records.append(run_one(spec))
-            if progress:
-                print(f"bruce-eval transfer: {i + 1}/{len(specs)} {spec.experiment} {spec.mode}", file=sys.stderr)
-        return records
+def plan_suite(settings: TransferSettings) -> list[RunSpec]:
+    """Every run of every profile (the nominal runs, shared, appear once per profile; `execute` runs them once)."""
+    return [spec for profile in settings.per_profile() for spec in plan(profile)]
+
+
+def nominal_of(spec: RunSpec) -> RunSpec:
+    """The nominal run `spec` is scored against (a sweep's: the tracking experiment's)."""
+    name = spec.experiment if spec.experiment in EXPERIMENT_BY_NAME else "tracking"
+    return dataclasses.replace(spec, experiment=name, mode="nominal", gap=None, eq9_scale=1.0, lookahead=0)
+
+
+@dataclass
+class RunResults:
+    """Every run's metrics against its nominal reference, and the records kept (the nominal references whole, the
+    runs the figures draw as traces), by `spec_key`."""
+
+    metrics: dict[str, dict] = field(default_factory=dict)
+    records: dict[str, RunRecord] = field(default_factory=dict)
+
+    def of(self, spec: RunSpec) -> dict:
+        return self.metrics[spec_key(spec)]
+
+    def record(self, spec: RunSpec) -> RunRecord | None:
+        return self.records.get(spec_key(spec))
+
+
+_REFERENCES: dict[tuple[str, str], RunRecord] = {}  # nominal records a worker process has loaded
+
+
+def _run_scored(spec: RunSpec, cache_root: str, kept: bool) -> tuple[dict, RunRecord | None]:
+    """Run `spec` and score it against its nominal reference (read from the cache; itself when it is nominal).
+    Returns the metrics and, when `kept`, the record (a nominal one whole, any other as a figure trace)."""
+    record = run_one(spec)
+    if spec.mode == "nominal":
+        reference = record
+    else:
+        nominal = nominal_of(spec)
+        key = (cache_root, spec_key(nominal))
+        if key not in _REFERENCES:
+            _REFERENCES[key] = RunCache(Path(cache_root)).record(key[1], nominal, RunRecord)
+        reference = _REFERENCES[key]
+    metrics = run_metrics(record, reference, EXPERIMENT_BY_NAME[nominal_of(spec).experiment])
+    return metrics, (record if spec.mode == "nominal" else trace(record)) if kept else None
+
+
+def _profile_label(spec: RunSpec) -> str:
+    return "no gap" if spec.gap is None else Path(spec.gap.source).stem
+
+
+def execute(specs: list[RunSpec], out: Path, jobs: int, keep: list[RunSpec] = (),
+            progress: bool = True) -> RunResults:
+    """Run every distinct spec once (the nominal references first), `jobs` at a time, each run's metrics (and the
+    records kept: nominal runs and `keep`) cached under OUT/runs as it finishes (`training.transfer_cache`); what
+    the cache already holds is not run again."""
+    cache = RunCache(Path(out) / "runs")
+    unique: dict[str, RunSpec] = {}
+    for spec in specs:
+        unique.setdefault(spec_key(spec), spec)
+    for spec in list(unique.values()):
+        unique.setdefault(spec_key(nominal_of(spec)), nominal_of(spec))
+    kept = {spec_key(s) for s in keep} | {k for k, s in unique.items() if s.mode == "nominal"}
+    results = RunResults()
+    done = 0
+
+    def report(spec: RunSpec, how: str) -> None:
+        if progress:
+            print(f"bruce-eval transfer: {done}/{len(unique)} {spec.experiment} {spec.mode} "
+                  f"({_profile_label(spec)}){how}", file=sys.stderr)
+
+    for stage in (lambda s: s.mode == "nominal", lambda s: s.mode != "nominal"):
+        todo = []
+        for key, spec in ((k, s) for k, s in unique.items() if stage(s)):
+            metrics = cache.metrics(key)
+            record = cache.record(key, spec, RunRecord) if key in kept and metrics is not None else None
+            if metrics is not None and (record is not None or key not in kept):
+                results.metrics[key] = metrics
+                if record is not None:
+                    results.records[key] = record
+                done += 1
+                report(spec, " cached")
+            else:
+                todo.append((key, spec))
+        for key, spec, metrics, record in _run_stage(todo, str(cache.root), kept, jobs):
+            cache.save_metrics(key, spec, metrics)
+            results.metrics[key] = cache.metrics(key)  # as a resumed run reads it back (NaN -> None)
+            if record is not None:
+                cache.save_record(key, record)
+                results.records[key] = record
+            done += 1
+            report(spec, "")
+    return results
+
+
+def _run_stage(todo: list[tuple[str, RunSpec]], cache_root: str, kept: set[str], jobs: int):
+    """(key, spec, metrics, record) of each run of `todo` as it finishes."""
+    if jobs <= 1 or len(todo) <= 1:
+        for key, spec in todo:
+            yield (key, spec, *_run_scored(spec, cache_root, key in kept))
+        return
     with ProcessPoolExecutor(max_workers=jobs) as pool:
-        records = []
-        for i, record in enumerate(pool.map(run_one, specs)):
-            records.append(record)
-            if progress:
-                print(f"bruce-eval transfer: {i + 1}/{len(specs)} {record.spec.experiment} {record.spec.mode}",
-                      file=sys.stderr)
-        return records
+        futures = {pool.submit(_run_scored, spec, cache_root, key in kept): (key, spec) for key, spec in todo}
+        for future in as_completed(futures):
+            yield (*futures[future], *future.result())
 
 
-def evaluate(settings: TransferSettings, records: list[RunRecord]) -> tuple[dict, dict]:
-    """(report, traces): per experiment and mode the metrics aggregated over seeds, plus the nominal run's own;
-    the sweeps; the records kept for the figures."""
-    by_name = {e.name: e for e in EXPERIMENTS}
-    nominal = {r.spec.experiment: r for r in records if r.spec.mode == "nominal"}
+def evaluate(settings: TransferSettings, results: RunResults) -> tuple[dict, dict]:
+    """(report, traces) of one profile: per experiment and mode the metrics aggregated over seeds, plus the nominal
+    run's own; the sweeps with each mode's latency tolerance; the records the figures draw."""
     report: dict = {}
     traces: dict = {}
     for name in settings.experiments:
-        experiment = by_name[name]
-        reference = nominal[name]
-        entry = {"command": list(experiment.command), "seconds": settings.seconds,
-                 "nominal": run_metrics(reference, reference, experiment)}
-        traces[name] = {"nominal": reference}
+        experiment = EXPERIMENT_BY_NAME[name]
+        nominal = _spec(settings, experiment, "nominal", None)
+        entry = {"command": list(experiment.command), "seconds": settings.seconds, "nominal": results.of(nominal)}
+        traces[name] = {"nominal": results.record(nominal)}
         for mode in settings.modes:
-            runs = [r for r in records if r.spec.experiment == name and r.spec.mode == mode]
-            entry[mode] = aggregate([run_metrics(r, reference, experiment) for r in runs])
-            traces[name][mode] = runs[0]
+            specs = [_spec(settings, experiment, mode, seed) for seed in settings.seeds]
+            entry[mode] = aggregate([results.of(spec) for spec in specs])
+            traces[name][mode] = results.record(specs[0])
         direct = entry["direct"]
         for mode in settings.modes[1:]:
             entry[f"{mode}_over_direct"] = {
                 key: (entry[mode][key] / direct[key] if direct[key] else float("nan"))
-                for key in ("joint_rmse", "mean_radial_deviation", "drift") if key in direct}
+                for key in ("joint_rmse", "mean_radial_deviation", "mean_deviation_from_simulator", "drift")
+                if key in direct and direct[key] is not None and entry[mode].get(key) is not None}
         report[name] = entry
-    reference = nominal["tracking"]
-    tracking = by_name["tracking"]
     sweeps: dict = {"latency": [], "eq9_gain": []}
     for latency in settings.latencies_ms:
         row = {"latency_ms": latency}
         for mode in settings.modes:
-            runs = [r for r in records if r.spec.experiment == "sweep_latency" and r.spec.mode == mode
-                    and abs(r.spec.gap.actuator_latency_s - latency / 1000.0) < 1e-12]
-            metrics = aggregate([run_metrics(r, reference, tracking) for r in runs])
+            specs = _latency_specs(settings, latency, mode)
+            metrics = aggregate([results.of(spec) for spec in specs])
             row[mode] = {"joint_rmse": metrics["joint_rmse"], "falls": metrics["falls"], "seeds": metrics["seeds"]}
             if mode == LOOKAHEAD_MODE:
-                row[mode]["lookahead_ticks"] = runs[0].spec.lookahead
+                row[mode]["lookahead_ticks"] = specs[0].lookahead
         sweeps["latency"].append(row)
-    direct_at_profile = None
+    if sweeps["latency"]:
+        sweeps["latency_tolerance_ms"] = {mode: latency_tolerance(sweeps["latency"], mode) for mode in settings.modes}
     for scale in settings.gain_scales if "pinn" in settings.modes else ():
-        runs = [r for r in records if r.spec.experiment == "sweep_gain" and r.spec.eq9_scale == scale]
-        metrics = aggregate([run_metrics(r, reference, tracking) for r in runs])
+        metrics = aggregate([results.of(spec) for spec in _gain_specs(settings, scale)])
         sweeps["eq9_gain"].append({"scale": scale, "pinn": {"joint_rmse": metrics["joint_rmse"],
                                                            "falls": metrics["falls"], "seeds": metrics["seeds"]}})
-    if "tracking" in report:
-        direct_at_profile = report["tracking"]["direct"]["joint_rmse"]
-    sweeps["eq9_gain_direct_reference"] = direct_at_profile  # Eq. 8 alone does not depend on the Eq. 9 gains
+    # Eq. 8 alone does not depend on the Eq. 9 gains
+    sweeps["eq9_gain_direct_reference"] = report["tracking"]["direct"]["joint_rmse"] if "tracking" in report else None
     report["sweeps"] = sweeps
     return report, traces
-
-
-TRACKING_BAR = 0.5  # issue 20's acceptance on the profile: tracking joint RMSE at most this share of direct's ...
-CIRCLE_BAR = 0.6    # ... and the circle's mean radial deviation at most this share, with no fall direct does not have
-
-
-def recommended(report: dict, modes: list[str] | tuple[str, ...]) -> str | None:
-    """Of `modes`, the scheme (not direct, not Eq. 9: the paper's row, not a perfect-model control) that clears the
-    bars on this profile, the best tracking first; None when none does. Needs the tracking and circle experiments."""
-    if "tracking" not in report or "circle" not in report:
-        return None
-    tracking, circle = report["tracking"], report["circle"]
-    passing = []
-    for mode in modes:
-        if mode in ("direct", "pinn", LOOKAHEAD_MODE) or PERFECT_MODEL_SUFFIX in mode:
-            continue
-        ok = (tracking[mode]["joint_rmse"] <= TRACKING_BAR * tracking["direct"]["joint_rmse"]
-              and circle[mode]["mean_radial_deviation"] <= CIRCLE_BAR * circle["direct"]["mean_radial_deviation"]
-              and all(report[e][mode]["falls"] <= report[e]["direct"]["falls"] for e in ("tracking", "circle")))
-        if ok:
-            passing.append((tracking[mode]["joint_rmse"], mode))
-    return min(passing)[1] if passing else None
 
 
 # -- outputs ---------------------------------------------------------------------------------------------------
@@ -478,6 +609,7 @@ def markdown(report: dict, meta: dict) -> str:
     rows = (("tracking", "joint_rmse", "joint RMSE (rad)"),
             ("tracking", "joint_velocity_rmse", "joint velocity RMSE (rad/s)"),
             ("circle", "mean_radial_deviation", "mean radial deviation (m)"),
+            ("circle", "mean_deviation_from_simulator", "deviation from the simulator's path (m)"),
             ("reverse", "drift", "drift (m)"), ("turn", "drift", "drift (m)"))
     for name, key, label in rows:
         if name not in report:
@@ -510,6 +642,50 @@ def markdown(report: dict, meta: dict) -> str:
         for row in sweeps["eq9_gain"]:
             fell = f" ({row['pinn']['falls']}/{row['pinn']['seeds']} fell)" if row["pinn"]["falls"] else ""
             lines.append(f"| {row['scale']:g} | {_fmt(row['pinn']['joint_rmse'])}{fell} |")
+    return "\n".join(lines) + "\n"
+
+
+def _mean_std(entry: dict, key: str) -> str:
+    value, std = entry.get(key), entry.get(f"{key}_std")
+    return _fmt(value) + (f" ± {_fmt(std, 2)}" if std is not None and value is not None else "")
+
+
+def suite_markdown(reports: dict[str, dict], modes, table: dict) -> str:
+    """Every profile x mode x experiment (mean ± std over seeds, falls), the latency each mode tolerates, and the
+    acceptance bars of each mode with the recommendation."""
+    names = {m: "Eq. 9 (paper)" if m in ("pinn", "eq9") else mode_label(m) for m in modes}
+    lines = ["## Every profile", "",
+             "Joint RMSE (rad) against the nominal run, offset / shape its split (RMS over joints of each joint's "
+             "mean error / of the rest); circle: distance from the simulator's own base path at the same tick and "
+             "from the ideal circle (m); falls over seeds.", "",
+             "| profile | scheme | tracking RMSE | offset / shape | circle RMSE | circle dev. vs simulator | "
+             "circle dev. (ideal) | falls |", "|---|---|---|---|---|---|---|---|"]
+    for profile, report in reports.items():
+        tracking, circle = report.get("tracking", {}), report.get("circle", {})
+        for mode in modes:
+            t, c = tracking.get(mode, {}), circle.get(mode, {})
+            falls = " · ".join(f"{name} {report[name][mode]['falls']}/{report[name][mode]['seeds']}"
+                               for name in report if name != "sweeps" and mode in report[name])
+            lines.append(f"| {profile} | {names[mode]} | {_mean_std(t, 'joint_rmse')} | {_fmt(t.get('offset'))} / "
+                         f"{_fmt(t.get('shape'))} | {_mean_std(c, 'joint_rmse')} | "
+                         f"{_mean_std(c, 'mean_deviation_from_simulator')} | {_mean_std(c, 'mean_radial_deviation')} "
+                         f"| {falls} |")
+    tolerance = next((r["sweeps"]["latency_tolerance_ms"] for r in reports.values()
+                      if "latency_tolerance_ms" in r.get("sweeps", {})), None)
+    if tolerance:
+        lines += ["", f"Actuator latency tolerated (ms; the largest swept latency up to which no seed fell), on "
+                      f"`{next(iter(reports))}`:", "", "| " + " | ".join(names[m] for m in modes) + " |",
+                  "|" + "---|" * len(modes), "| " + " | ".join(_fmt(tolerance.get(m)) for m in modes) + " |"]
+    lines += ["", "## Acceptance (issue 20)", "", "| scheme | bar | value | limit | pass |", "|---|---|---|---|---|"]
+    for mode, bars in table.items():
+        for bar, result in bars.items():
+            where = f" ({result['experiment']})" if "experiment" in result else ""
+            note = f" ({result['note']})" if "note" in result else ""
+            lines.append(f"| {names.get(mode, mode)} | {bar}{where} | {_fmt(result['value'])} | "
+                         f"{_fmt(result['limit'])} | {'yes' if result['pass'] else 'no'}{note} |")
+    choice = recommended(table)
+    lines += ["", f"Recommended: **{names[choice]}**" if choice else
+              "Recommended: none (no scheme other than Eq. 9 and the perfect-model controls passes every bar)."]
     return "\n".join(lines) + "\n"
 
 
@@ -621,8 +797,12 @@ def _numbers(text: str, option: str) -> tuple[float, ...]:
 def add_parser(commands) -> argparse.ArgumentParser:
     p = commands.add_parser("transfer", help="sim-to-real rehearsal: direct vs PINN transfer on a gapped mock",
                             description=__doc__.split("\n\n")[0])
-    p.add_argument("--gap", default="default", help="reality-gap profile: a name in configs/gaps or a YAML path "
-                                                    "(default: %(default)s)")
+    p.add_argument("--gap", default=None,
+                   help="reality-gap profile: a name in configs/gaps or a YAML path, or several, comma-separated: "
+                        "each is evaluated, the sweeps on the first (default: default)")
+    p.add_argument("--suite", choices=sorted(SUITES), default=None,
+                   help="a named list of profiles instead of --gap: " + "; ".join(
+                       f"{name} = {','.join(profiles)}" for name, profiles in SUITES.items()))
     p.add_argument("--out", type=Path, required=True, help="directory for transfer.json, transfer.md and PNGs")
     p.add_argument("--seeds", default="0,1,2", help="gap noise seeds per mode (default: %(default)s)")
     p.add_argument("--seconds", type=float, default=DEFAULT_SECONDS, help="per run (default: %(default)s)")
@@ -651,6 +831,20 @@ def add_parser(commands) -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="parallel runs (default: CPU count)")
     p.add_argument("--config", default=None, help="robot config (default: BRUCE's)")
     return p
+
+
+def profiles_from_args(args) -> tuple[tuple[str, RealityGap], ...]:
+    """(name, gap) of each profile of --gap or --suite, in order."""
+    suite, gaps = getattr(args, "suite", None), getattr(args, "gap", None)
+    if suite is not None and gaps is not None:
+        raise TransferError("--gap and --suite: give one (a suite is a list of profiles)")
+    names = SUITES[suite] if suite is not None else tuple(n.strip() for n in (gaps or "default").split(","))
+    if not all(names):
+        raise TransferError(f"--gap: an empty profile name in {gaps!r}")
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise TransferError(f"--gap: {twice[0]!r} given twice")
+    return tuple((name, load_gap(name)) for name in names)
 
 
 def settings_from_args(args) -> TransferSettings:
@@ -689,8 +883,9 @@ def settings_from_args(args) -> TransferSettings:
     overrides = tuple(getattr(args, "overrides", None) or ())
     if overrides:
         load_config(args.config or DEFAULT_CONFIG, list(overrides))  # a bad --set fails here, naming the key
-    return TransferSettings(gap=load_gap(args.gap), gap_name=args.gap, lookahead=lookahead, seeds=seeds,
-                            schemes=schemes, overrides=overrides,
+    profiles = profiles_from_args(args)
+    return TransferSettings(gap=profiles[0][1], gap_name=profiles[0][0], profiles=profiles, lookahead=lookahead,
+                            seeds=seeds, schemes=schemes, overrides=overrides,
                             seconds=args.seconds,
                             controller=args.controller, estimator=args.estimator, experiments=names,
                             latencies_ms=latencies, gain_scales=scales, sweep_seeds=sweep_seeds,
@@ -704,9 +899,16 @@ def run_transfer(args, argv: list[str]) -> int:
     except (TransferError, GapError, ConfigError) as exc:
         print(f"bruce-eval: error: {exc}", file=sys.stderr)
         return 1
-    records = run_all(plan(settings), settings.jobs)
-    report, traces = evaluate(settings, records)
-    meta = {"command": "bruce-eval " + " ".join(argv), "gap_name": settings.gap_name,
+    profiles = settings.per_profile()
+    first = profiles[0]
+    figure_runs = [_spec(first, EXPERIMENT_BY_NAME[name], mode, first.seeds[0]) for name in first.experiments
+                   for mode in first.modes]
+    args.out.mkdir(parents=True, exist_ok=True)
+    results = execute(plan_suite(settings), args.out, settings.jobs, keep=figure_runs)
+    reports = {profile.gap_name: evaluate(profile, results)[0] for profile in profiles[1:]}
+    report, traces = evaluate(first, results)
+    reports = {first.gap_name: report, **reports}
+    meta = {"command": "bruce-eval " + " ".join(argv), "gap_name": settings.gap_name, "profiles": list(reports),
             "gap": {k: v for k, v in dataclasses.asdict(settings.gap).items()}, "controller": settings.controller,
             "estimator": settings.estimator, "seconds": settings.seconds, "seeds": list(settings.seeds),
             "sweep_seeds": list(settings.sweep_seeds), "joints": list(config.joints),
@@ -714,13 +916,17 @@ def run_transfer(args, argv: list[str]) -> int:
                 f"auto ({lookahead_ticks('auto', settings.gap)})" if settings.lookahead == "auto"
                 else settings.lookahead),
             "scored_after_s": TRACKING_SKIP_S, "modes": list(settings.modes), "overrides": list(settings.overrides)}
-    args.out.mkdir(parents=True, exist_ok=True)
-    document = {"meta": meta, "recommended": recommended(report, settings.modes), **report}
+    table = acceptance(reports, settings.modes)
+    document = {"meta": meta, "recommended": recommended(table), "acceptance": table, **report}
+    if len(reports) > 1:
+        document["profiles"] = reports
     (args.out / "transfer.json").write_text(json.dumps(json_safe(document), indent=2) + "\n")
-    text = markdown(report, meta)
+    text = markdown(report, meta) + "\n" + suite_markdown(reports, settings.modes, table)
     (args.out / "transfer.md").write_text(text)
-    figures = plot(args.out, report, traces, tuple(config.joints))
+    try:
+        figures = plot(args.out, report, traces, tuple(config.joints))
+    except ModuleNotFoundError as exc:  # matplotlib comes with the `train` extra; the numbers do not need it
+        figures = [f"no figures ({exc.name} is not installed: pip install -e '.[train]')"]
     print(text)
     print(f"bruce-eval: wrote {args.out}/transfer.json, transfer.md, {', '.join(figures)}")
     return 0
-

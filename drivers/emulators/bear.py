@@ -1,8 +1,8 @@
 """A byte-exact emulator of a BEAR RS-485 chain: N Koala BEARs by ID behind one pseudo-terminal.
 
 The host opens `emulator.path` as it would /dev/ttyUSB0 and speaks the BEAR protocol (drivers/bear.py's docstring
-restates it): PING, READ_STAT, WRITE_STAT, READ_CFG, WRITE_CFG, SAVE_CFG and BULK_COMM are answered as the research
-notes (bruce_hw.md §2) describe, so any spec-following host works, not only `drivers.bear.BearBus`: no reply to
+restates it): PING, READ_STAT, WRITE_STAT, READ_CFG, WRITE_CFG, SAVE_CFG and BULK_COMM are answered as PyBEAR
+and BRUCE-OP use them, so any spec-following host works, not only `drivers.bear.BearBus`: no reply to
 writes, nor to anything sent to the broadcast ID except BULK_COMM; one status packet per listed motor, in request
 order, for BULK_COMM with reads; register values typed by the register tables (u32 or f32, little-endian).
 
@@ -107,7 +107,7 @@ CORRUPTIONS = ("checksum", "truncate", "garbage", "foreign", "drop")
 LOSS_CORRUPTIONS = ("checksum", "truncate", "garbage")  # what set_reply_loss's `corrupt` does, drawn evenly
 MAX_EVENTS = 10_000
 
-# Power-on values. Gains and limits are BRUCE's (bruce_hw.md §2.5); the rest are plausible choices.
+# Power-on values. Gains and limits are BRUCE-OP v0.0.7's; the rest are plausible choices.
 DEFAULT_CONFIG: dict[str, int | float] = {
     "id": 0, "mode": 0, "baudrate": 8_000_000, "homing_offset": 0.0,
     "p_gain_id": 0.277, "i_gain_id": 0.061, "d_gain_id": 0.0,

@@ -78,8 +78,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.dynamixel import (
-    ARM_IDS,
-    ARM_SIGNS,
     BROADCAST_ID,
     BUS_WATCHDOG_ERROR,
     BUS_WATCHDOG_MAX,
@@ -431,7 +429,7 @@ class XSeriesServo:
 class DynamixelBusEmulator:
     """X-series servos with the given IDs on one pty (see the module docstring)."""
 
-    def __init__(self, ids: Sequence[int] = ARM_IDS, *, signs: Sequence[float] | None = None,
+    def __init__(self, ids: Sequence[int], *, signs: Sequence[float] | None = None,
                  model_number: int = XM430_W350, firmware: int = FIRMWARE_VERSION, track_goals: bool = True,
                  frame_gap_s: float = 0.01, name: str = "dynamixel"):
         ids = tuple(int(i) for i in ids)
@@ -439,7 +437,7 @@ class DynamixelBusEmulator:
             raise ValueError(f"ids must be unique servo IDs in 0..{MAX_ID}, got {ids}")
         self.ids = ids
         if signs is None:
-            signs = ARM_SIGNS if ids == ARM_IDS else (1.0,) * len(ids)
+            signs = (1.0,) * len(ids)
         self.signs = np.asarray(signs, dtype=np.float64)
         self.servos = [XSeriesServo(i, model_number, firmware, track_goals) for i in ids]
         self.name = name

@@ -1,6 +1,6 @@
 """Byte-exact emulator of BRUCE's sense board (Pico firmware of BRUCE-OP v0.0.5/v0.0.7) on a pseudo-terminal.
 
-What it does, as the firmware does (research notes §4.1, `pico.ino`):
+What it does, as the firmware does (BRUCE-OP v0.0.7's `pico.ino`):
 - Boots in IDLE: sends nothing, reads the host's commands about every `idle_poll_s` (10 ms).
 - NOMINAL: streams the 29-byte packet (`drivers.sense.encode_packet`) at `rate_hz` (1 kHz) and reads commands
   only every `command_poll_s` (1 s on the real board, so a mode change takes up to a second to land).

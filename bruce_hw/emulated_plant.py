@@ -28,7 +28,7 @@ Choices (the emulators leave these to the adapter):
   even when the host has gone silent.
 
 `EmulatedRobot` starts the emulators a config describes (BEAR or CAN legs, Dynamixel arms, sense board) with a
-plant driving them; `bruce-emulate` (drivers/emulators/cli.py) is its command line. `EmulatedRobot.unplug(bus)`
+plant driving them; `bruce-emulate` (runtime/emulate_cli.py) is its command line. `EmulatedRobot.unplug(bus)`
 cuts a bus's wire, `EmulatedRobot.set_reply_delay(bus, fixed, jitter)` makes a bus answer late, and
 `EmulatedRobot.drain_events()` merges every emulator's event log (those that have one) with its own (unplug / plug
 and reply delays of the Dynamixel bus and the sense board), in time order.
@@ -300,7 +300,8 @@ class EmulatedRobot:
                 from drivers.emulators.bear import BearBusEmulator
 
                 self.bear = BearBusEmulator(cfg.buses.bear.ids).start()
-            self.dynamixel = DynamixelBusEmulator(cfg.buses.dynamixel.ids, track_goals=False).start()
+            self.dynamixel = DynamixelBusEmulator(cfg.buses.dynamixel.ids, signs=cfg.arms.servo_signs,
+                                                  track_goals=False).start()
             # The real firmware reads commands once a second while streaming; a shorter poll keeps repeated
             # start-ups and shutdowns from waiting that second each.
             self.sense = SenseBoardEmulator(command_poll_s=self.sense_command_poll_s, lockstep=self.lockstep).start()

@@ -59,6 +59,7 @@ import signal
 import sys
 import threading
 import time
+from pathlib import Path
 
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
 from drivers.emulators.reply_delay import MAX_DELAY_S, check_delay
@@ -151,7 +152,7 @@ def bruce_run_args(args: argparse.Namespace, robot) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from drivers.emulators.plant import EmulatedRobot
+    from bruce_hw.emulated_plant import EmulatedRobot
 
     args = build_parser().parse_args(argv)
     try:
@@ -417,7 +418,7 @@ class EmulatorProcess:
         env = None
         if cwd is not None:
             env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [cwd, os.environ.get("PYTHONPATH")])))
-        self.proc = subprocess.Popen([sys.executable, "-m", "drivers.emulators.cli", *args], stdin=subprocess.PIPE,
+        self.proc = subprocess.Popen([sys.executable, "-m", "runtime.emulate_cli", *args], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
                                      cwd=cwd, env=env)
         self.lines: queue.Queue[str] = queue.Queue()
@@ -433,6 +434,14 @@ class EmulatorProcess:
         self.command_line = line.split()
         words = self.command_line
         self.overrides = [words[i + 1] for i, w in enumerate(words) if w == "--set"]
+
+    def bruce_run_argv(self, seconds: float, stats_path: Path, cmd: str | None = None,
+                       overrides: list[str] | tuple[str, ...] = ()) -> list[str]:
+        """A headless `bruce-run` against these devices, as a Python command line: the command `cmd` (VX,VY,WZ) or
+        the standing controller, for `seconds`, its stats to `stats_path`, with `--set` overrides."""
+        controller = [f"--cmd={cmd}"] if cmd else ["--controller", "standing"]
+        return [sys.executable, "-m", "runtime.cli", *self.command_line[1:], *controller, "--duration", str(seconds),
+                "--rerun", "off", "--stats", str(stats_path), *(w for item in overrides for w in ("--set", item))]
 
     def _pump(self) -> None:
         for line in self.proc.stdout:

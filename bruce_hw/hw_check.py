@@ -57,7 +57,7 @@ PROG = "bruce-hw-check"
 BEAR_REGISTERS = ("torque_enable", "winding_temperature", "powerstage_temperature", "ic_temperature",
                   "input_voltage")
 DXL_HARDWARE_ERROR, DXL_INPUT_VOLTAGE, DXL_TEMPERATURE = 70, 144, 146  # X-series control table
-TEMPERATURE_WARN_C = 75.0  # BRUCE-OP's warnings (research notes §5.5)
+TEMPERATURE_WARN_C = 75.0  # BRUCE-OP v0.0.7's warnings (top-level display)
 VOLTAGE_WARN_V = 14.5
 # -- round trips (module docstring)
 RTT_CYCLES = 300
@@ -84,6 +84,13 @@ class BusReport:
     @property
     def ok(self) -> bool:
         return self.error is None and not self.missing and not self.faults
+
+    def problem(self) -> str:
+        """One phrase naming the bus and what is wrong with it (empty when ok)."""
+        what = ([f"cannot use the bus ({self.error})"] if self.error else []) + (
+            [f"missing {_ids(self.missing)}"] if self.missing else []) + (
+            [f"{len(self.faults)} device(s) with faults"] if self.faults else [])
+        return f"{self.name.split(' (')[0]}: {', '.join(what)}" if what else ""
 
     def text(self) -> str:
         head = f"{self.name}: " + ("OK" if self.ok else "PROBLEM")
@@ -224,11 +231,11 @@ def check_sense(config: RobotConfig, listen_s: float = 0.2, polls: int = 0) -> B
                 count, t0 = board.sample_count, time.monotonic()
                 time.sleep(listen_s)
                 rate = (board.sample_count - count) / (time.monotonic() - t0)
-            imu, contacts = board.read()
+            imu, _ = board.read()
         except DriverError as exc:
             report.error = str(exc)
             return report
-        closed = [name for name, c in zip(("r_toe", "r_heel", "l_toe", "l_heel"), contacts.contact, strict=True) if c]
+        closed = [name for name, c in zip(("r_toe", "r_heel", "l_toe", "l_heel"), imu.contact, strict=True) if c]
         report.lines.append(f"streaming {rate:.0f} samples/s; specific force {_vec(imu.accel)} m/s^2 "
                             f"(|a| {math.sqrt(float(imu.accel @ imu.accel)):.2f}); gyro {_vec(imu.gyro)} rad/s; "
                             f"contacts closed: {', '.join(closed) or 'none'}")
@@ -707,8 +714,7 @@ def main(argv: list[str] | None = None) -> int:
         print(report.text())
     problems = [r for r in reports if not r.ok]
     if problems:
-        missing = "; ".join(f"{r.name.split(' (')[0]}: missing {_ids(r.missing)}" for r in problems if r.missing)
-        print(f"{PROG}: PROBLEMS on {len(problems)} bus(es)" + (f" ({missing})" if missing else ""))
+        print(f"{PROG}: PROBLEMS on {len(problems)} bus(es): " + "; ".join(r.problem() for r in problems))
         return 1
     print(f"{PROG}: OK, every device answers")
     return 0

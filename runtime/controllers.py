@@ -1,0 +1,32 @@
+"""The nominal controllers by name (`--controller`): every one has reset(q) and a_t = controller(state, base, command)
+at the policy rate."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from bruce_hw.config import RobotConfig
+from runtime.inference import OnnxPolicy
+from runtime.policy import ObservationBuilder, PolicyController
+from runtime.standing import StandingController
+
+CONTROLLERS = ("policy", "teacher", "standing")
+
+
+def build_controller(config: RobotConfig, policy_path: Path | None, kind: str = "policy"):
+    """The nominal controller and its name. `policy`: the ONNX policy given (or configured), else the standing
+    controller; `teacher`: the model-based walking controller; `standing`: the standing controller."""
+    if kind not in CONTROLLERS:
+        raise ValueError(f"unknown controller {kind!r} (expected one of {', '.join(CONTROLLERS)})")
+    if policy_path is not None and kind != "policy":
+        raise ValueError(f"a policy model ({policy_path}) is for the policy controller, not {kind!r}")
+    if kind == "teacher":
+        from runtime.walking.teacher import WalkingTeacher  # only runs that walk with it load its models
+
+        return WalkingTeacher(config), "walking teacher"
+    path = (policy_path or config.models.policy) if kind == "policy" else None
+    if path is None:
+        return StandingController(config), "standing controller"
+    policy = OnnxPolicy(path, ObservationBuilder(config).size, config.n_joints)
+    policy.warmup()
+    return PolicyController(config, policy), f"policy {path}"

@@ -1,0 +1,26 @@
+"""What "fell" means, for every evaluation of a run (the run summary, bruce-collect, bruce-eval transfer, DAgger).
+
+A robot has fallen when the simulator's truth puts its base below FALL_HEIGHT_FRACTION of its nominal standing
+height (the mock's `nominal_base_height`: the legs in the standing pose, soles on the floor) or tilts it more
+than FALL_TILT_RAD from upright. Mock only: a robot has no ground truth.
+"""
+
+from __future__ import annotations
+
+import math
+
+from bruce_hw.types import GroundTruth
+from runtime.estimation import tilt_of
+
+FALL_HEIGHT_FRACTION = 0.6   # fallen when the base is below this share of its nominal standing height
+FALL_TILT_RAD = math.pi / 4  # ... or the base is tilted more than this
+
+
+def has_fallen(truth: GroundTruth, nominal_base_height: float) -> bool:
+    return float(truth.base_pos[2]) < FALL_HEIGHT_FRACTION * nominal_base_height or \
+        tilt_of(truth.base_quat) > FALL_TILT_RAD
+
+
+def fall_rule() -> dict:
+    """The definition as data, for the metadata of files made under it."""
+    return {"base_height_below": f"{FALL_HEIGHT_FRACTION} x nominal standing height", "tilt_above_rad": FALL_TILT_RAD}
