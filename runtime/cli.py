@@ -208,8 +208,7 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
                               transfer=transfer, policy=args.policy, pinn=args.pinn,
                               rerun=None if sink.kind == "off" else sink, controller_kind=args.controller,
                               estimator=args.estimator, commands=commands, stop=stop)
-    except (BackendError, ModelError, TelemetryError, ValueError) as exc:
-        print(f"bruce-run: {exc}", file=sys.stderr)
+    except (BackendError, ModelError, TelemetryError, ValueError) as exc:  # the session's summary has named it
         return exit_code_of(exc)
     return summary.exit_code
 

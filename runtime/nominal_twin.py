@@ -28,6 +28,7 @@ from bruce_hw.types import FootContacts, GroundTruth, ImuSample, JointState, Rob
 from runtime.estimation import BaseEstimate, euler_of, rotate_to_body
 from runtime.inference import ModelError
 from runtime.mixing import eq8_torque
+from runtime.reference_models import nominal_backend
 from runtime.safety import SafetyStage
 
 
@@ -36,13 +37,9 @@ class NominalTwin:
 
     def __init__(self, config: RobotConfig, base_state: Callable[[], GroundTruth | None], resync_ticks: int,
                  controller):
-        from bruce_hw.mock import MujocoBackend  # its configure() finds the joints, motors and checks the MJCF
-
-        if base_state() is None:
-            raise ModelError("the nominal twin needs the robot's full state (base and joints), which only the mock "
-                             "backend has (simulator ground truth); it is not available on the robot")
-        nominal = MujocoBackend(config)
-        nominal.configure()
+        nominal = nominal_backend(config, base_state, "the nominal twin needs the robot's full state (base and "
+                                  "joints), which only the mock backend has (simulator ground truth); it is not "
+                                  "available on the robot")
         self.model, self.data = nominal.model, nominal.data
         self._qpos, self._dofs, self._acts = nominal._qpos, nominal._dofs, nominal._acts
         self.controller = controller

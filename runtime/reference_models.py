@@ -34,6 +34,18 @@ class ReferenceModel(Protocol):
     def step(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
 
+def nominal_backend(config: RobotConfig, base_state: Callable[[], GroundTruth | None], refusal: str):
+    """A configured nominal mock whose model a reference sets to the simulator's state and steps; ModelError with
+    `refusal` where there is no simulator state to start from (any backend but the mock)."""
+    from bruce_hw.mock import MujocoBackend  # its configure() finds the joints, motors and checks the MJCF
+
+    if base_state() is None:
+        raise ModelError(refusal)
+    nominal = MujocoBackend(config)
+    nominal.configure()
+    return nominal
+
+
 class PinnReference:
     """The ONNX PINN as a reference model (one call per `step`, the LSTM state carried)."""
 
@@ -55,14 +67,9 @@ class NominalReference:
     name = "nominal"
 
     def __init__(self, config: RobotConfig, base_state: Callable[[], GroundTruth | None]):
-        from bruce_hw.mock import MujocoBackend  # its configure() finds the joints, motors and checks the MJCF
-
-        if base_state() is None:
-            raise ModelError("transfer.reference_model nominal: the nominal MuJoCo model needs the simulator's base "
-                             "state, which only the mock backend has (it is the rehearsal's perfect-model control)")
-
-        nominal = MujocoBackend(config)
-        nominal.configure()
+        nominal = nominal_backend(config, base_state, "transfer.reference_model nominal: the nominal MuJoCo model "
+                                  "needs the simulator's base state, which only the mock backend has (it is the "
+                                  "rehearsal's perfect-model control)")
         self.model, self.data = nominal.model, nominal.data
         # The backend's own index slices of the config's joints in qpos, qvel and ctrl (checked contiguous there).
         self._qpos, self._dofs, self._acts = nominal._qpos, nominal._dofs, nominal._acts

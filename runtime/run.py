@@ -136,7 +136,7 @@ class RunSummary:
         cause = f" ({self.stop_cause})" if self.stop_cause else ""
         lines.append(f"  final state: {self.final_state}{cause}; exit code {int(self.exit_code)}"
                      + (f" ({self.fault_class})" if self.fault_class else ""))
-        if self.error:
+        if self.error and self.error.partition(": ")[2] != self.stop_cause:  # else the final state says it
             lines.append(f"  error: {self.error}")
         return "\n".join(lines)
 
