@@ -29,7 +29,8 @@ import time
 
 import numpy as np
 
-from drivers.bear import BearBus, Mode
+from drivers.bear import BearBus
+from drivers.bear_registers import Mode
 from runtime.emulate_cli import EmulatorProcess
 
 MODES = {"floor": (), "plain": (), "lockstep": ("--lockstep",), "realtime": ("--realtime",),
@@ -62,7 +63,8 @@ def _line(case: str, rtt: np.ndarray, lost: int, wall: float) -> str:
 
 def serve_floor() -> None:
     """The `floor` device: canned replies to whatever comes, from the pty thread, until stdin closes."""
-    from drivers.bear import ERROR_OK, encode_status
+    from drivers.bear_codec import encode_status
+    from drivers.bear_registers import ERROR_OK
     from drivers.emulators.pty_device import PtyDevice
     from runtime.emulate_cli import SWITCH_INTERVAL_S
 

@@ -105,7 +105,8 @@ class BearLegs:
 
     # -- start-up
     def open(self) -> None:
-        from drivers.bear import FAULT_BITS, BearBus, BearError, Mode
+        from drivers.bear import BearBus
+        from drivers.bear_registers import FAULT_BITS, BearError, Mode
         from drivers.errors import DriverError
 
         self._torque_mode = Mode.TORQUE
@@ -126,7 +127,7 @@ class BearLegs:
 
     def configure(self) -> None:
         """Torque off, errors cleared, limits and gains written with torque disabled (BRUCE's run_bear)."""
-        from drivers.bear import Mode, TorqueEnable
+        from drivers.bear_registers import Mode, TorqueEnable
         from drivers.errors import DeviceFault, DriverError
 
         bus = self.bus
@@ -141,7 +142,7 @@ class BearLegs:
                 problems.append(f"{self.name}: ID {device_id}: clearing errors: {exc}")
         if problems:
             raise StartupError(problems)
-        from drivers.bear import RATED_CURRENT_A
+        from drivers.bear_registers import RATED_CURRENT_A
 
         if self.i_max <= RATED_CURRENT_A * (1 + 1e-9):  # 10.5 / 0.35 is 30 A give or take a rounding
             self.i_max = min(self.i_max, RATED_CURRENT_A)
@@ -184,7 +185,7 @@ class BearLegs:
         """watchdog_timeout back to 0 (a clean shutdown leaves the BEARs as other software expects them): config
         registers take writes only with torque disabled, so disable, write and read back, then damping again.
         Best effort: it runs on the shutdown path."""
-        from drivers.bear import TorqueEnable
+        from drivers.bear_registers import TorqueEnable
         from drivers.errors import DriverError
 
         if self.bus is None or not self.watchdog_count:
@@ -200,7 +201,7 @@ class BearLegs:
 
     # -- lifecycle
     def enable(self) -> None:
-        from drivers.bear import TorqueEnable
+        from drivers.bear_registers import TorqueEnable
 
         bus = self.bus
         for device_id in self.ids:
@@ -217,13 +218,13 @@ class BearLegs:
                 f"ID {i} reads {v}" for i, v in refused.items()) + hint)
 
     def disable(self) -> None:
-        from drivers.bear import TorqueEnable
+        from drivers.bear_registers import TorqueEnable
 
         self.bus.set_torque_enable(self.ids, TorqueEnable.DISABLED)
 
     def damp(self) -> None:
         """torque_enable = 3 to every BEAR; a write that fails is skipped (the others still get theirs)."""
-        from drivers.bear import TorqueEnable
+        from drivers.bear_registers import TorqueEnable
         from drivers.errors import DriverError
 
         if self.bus is None:

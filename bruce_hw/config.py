@@ -25,7 +25,7 @@ import numpy as np
 import yaml
 
 from bruce_hw.coupling import Coupling
-from drivers.bear import RATED_CURRENT_A
+from drivers.bear_registers import RATED_CURRENT_A
 from drivers.can_motor import MitRanges  # the MIT frame ranges: one type for the config and the driver
 
 DEFAULT_CONFIG = "configs/robots/bruce.yaml"

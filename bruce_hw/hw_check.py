@@ -104,7 +104,8 @@ class BusReport:
 
 
 def check_bear(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
-    from drivers.bear import FAULT_BITS, BearBus, BearError
+    from drivers.bear import BearBus
+    from drivers.bear_registers import FAULT_BITS, BearError
     from drivers.errors import BusTimeout, DriverError
 
     bus_cfg = config.buses.bear
@@ -491,7 +492,7 @@ def probe_watchdog(bus, device_id: int, counts=PROBE_COUNTS, *, feed_s: float = 
     measured from the start of the last feeding request to the start of the ping (the wire latency cancels); a
     trial with a retried request is repeated. The motor only ever gets goal_iq 0. The caller restores the BEAR
     (`restore_after_probe`). ProbeError (one line) on a silent BEAR, an E-stop, a fault, no trip or the budget."""
-    from drivers.bear import FAULT_BITS, BearError, Mode
+    from drivers.bear_registers import FAULT_BITS, BearError, Mode
     from drivers.errors import BusTimeout, DriverError
 
     deadline = time.monotonic() + budget_s
@@ -559,7 +560,7 @@ def _bracket_trip(bus, device_id: int, count: int, first_wait_s: float, feed_s: 
 
 def _trial(bus, device_id: int, wait_s: float, feed_s: float) -> tuple[float, bool]:
     """Re-arm, feed, stay silent about `wait_s`, ping: (the silence measured, whether bit 3 came back set)."""
-    from drivers.bear import BearError, Mode
+    from drivers.bear_registers import BearError, Mode
     from drivers.errors import BusTimeout
 
     for _ in range(PROBE_BAD_TRIALS):

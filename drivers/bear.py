@@ -1,5 +1,6 @@
-"""Koala BEAR actuators (Westwood Robotics) on RS-485: register tables, packet encoders, a resynchronising reply
-parser, and `BearBus`, a pyserial driver with bounded timeouts whose `bulk_cycle` does one control tick's I/O.
+"""Koala BEAR actuators (Westwood Robotics) on RS-485: `BearBus`, a pyserial driver with bounded timeouts whose
+`bulk_cycle` does one control tick's I/O, and its reply types. The register tables are in `drivers.bear_registers`,
+the packet encoders and the resynchronising reply parser in `drivers.bear_codec`.
 
 Wire protocol (Dynamixel-1.0-like; sources: Westwood's PyBEAR SDK and BRUCE-OP v0.0.7):
 
@@ -38,29 +39,42 @@ Choices where the sources are silent or disagree (drivers/emulators/bear.py make
 
 from __future__ import annotations
 
-import math
 import struct
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from enum import IntEnum, IntFlag
 
 import numpy as np
 
+from drivers.bear_codec import (
+    StatusPacket,
+    StatusParser,
+    decode_values,
+    encode_bulk,
+    encode_ping,
+    encode_read,
+    encode_save_config,
+    encode_write,
+    reply_length,
+)
+from drivers.bear_registers import (
+    BROADCAST_ID,
+    CYCLE_READS,
+    ERROR_OK,
+    FAULT_BITS,
+    GOALS_BY_MODE,
+    REGISTER_ALIASES,
+    BearError,
+    Mode,
+    Register,
+    TorqueEnable,
+    config_register,
+    error_flags,
+    status_register,
+)
 from drivers.errors import BusTimeout, DeviceFault, DriverError, LinkStats
-from drivers.framing import skip_to_header
 
-HEADER = b"\xff\xff"
-BROADCAST_ID = 0xFE
-MAX_DEVICE_ID = 0xFD  # 0xFE is the broadcast ID, and an ID of 0xFF would read as a header byte
 DEFAULT_BAUD = 8_000_000
-MAX_BULK_REGISTERS = 15  # one nibble each for the read and the write count
-MAX_PARAMS = 253  # LEN is one byte: n_params + 2 <= 255
-MAX_FRAME = 4 + 255  # FF FF ID LEN + LEN bytes
-FLOAT32_MAX = 3.4028234663852886e38
-# The Koala BEAR's rated current (BRUCE-OP: limit_i_max 30 A = 10.5 N m at 0.35 N m/A). No current register is ever
-# written beyond it, whatever a caller computed: a wrong torque constant in a config must not reach the windings.
-RATED_CURRENT_A = 30.0
 # Longest pause between two replies of one request before the rest counts as lost: the BEARs answer back to back,
 # and a USB adapter in low-latency mode delivers what it holds at least every millisecond.
 REPLY_GAP_S = 0.0015
@@ -69,389 +83,6 @@ STALL_TOLERANCE_S = 0.0005
 # Most host time a call does not count against the device: beyond it the readings are too old for any data-age limit
 # (safety.max_sensor_age_s is at most 50 ms), so waiting longer would gain nothing.
 MAX_STALL_CREDIT_S = 0.05
-RATED_LIMITS = {"limit_i_max": RATED_CURRENT_A, "goal_iq": RATED_CURRENT_A, "goal_id": RATED_CURRENT_A}
-
-
-class Instruction(IntEnum):
-    PING = 0x01
-    READ_STAT = 0x02
-    WRITE_STAT = 0x03
-    READ_CFG = 0x04
-    WRITE_CFG = 0x05
-    SAVE_CFG = 0x06
-    SET_POSITION = 0x08  # absolute-position reset of battery-backed BEARs; probably not on Koala, unused here
-    BULK_COMM = 0x12
-
-
-class Mode(IntEnum):
-    """Config register `mode`."""
-
-    TORQUE = 0  # goal_iq
-    VELOCITY = 1  # goal_velocity
-    POSITION = 2  # goal_position
-    FORCE = 3  # "direct force": spring-damper around goal_position/goal_velocity plus goal_iq feed-forward
-
-
-class TorqueEnable(IntEnum):
-    """Status register `torque_enable`: 0, 1 and 3 are written; 2 is only read (the BEAR is in error)."""
-
-    DISABLED = 0
-    ENABLED = 1
-    ERROR = 2
-    DAMPING = 3
-
-
-# The goals each mode's bulk cycle writes, in the order they go on the wire (BRUCE's run_bear.py).
-GOALS_BY_MODE: dict[Mode, tuple[str, ...]] = {
-    Mode.TORQUE: ("goal_iq",),
-    Mode.VELOCITY: ("goal_velocity",),
-    Mode.POSITION: ("goal_position",),
-    Mode.FORCE: ("goal_position", "goal_velocity", "goal_iq"),
-}
-CYCLE_READS = ("present_position", "present_velocity", "present_iq")
-
-
-# -- register tables ------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Register:
-    name: str
-    address: int
-    kind: str  # "u32" or "f32"
-    table: str  # "config" or "status"
-    writable: bool = True
-
-    @property
-    def fmt(self) -> str:
-        """struct format character of the value."""
-        return "I" if self.kind == "u32" else "f"
-
-    def check(self, value) -> int | float:
-        """The value as it will be packed: an int for u32 (never a float), a finite float for f32."""
-        if self.kind == "u32":
-            if isinstance(value, bool | np.bool_ | int | np.integer):
-                number = int(value)
-            elif isinstance(value, float | np.floating) and float(value).is_integer():
-                number = int(value)
-            else:
-                raise ValueError(f"{self.name} is u32: {value!r} is not an integer")
-            if not 0 <= number <= 0xFFFFFFFF:
-                raise ValueError(f"{self.name} is u32: {number} is out of range")
-            return number
-        try:
-            number = float(value)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{self.name} is f32: {value!r} is not a number") from exc
-        if not math.isfinite(number) or abs(number) > FLOAT32_MAX:
-            raise ValueError(f"{self.name} is f32: {value!r} is not a finite float32")
-        rated = RATED_LIMITS.get(self.name)
-        if rated is not None and abs(number) > rated:
-            raise ValueError(f"{self.name} {number:g} A is beyond the Koala BEAR's rated {rated:g} A")
-        return number
-
-    def encode(self, value) -> bytes:
-        return struct.pack("<" + self.fmt, self.check(value))
-
-    def decode(self, raw: bytes) -> int | float:
-        return struct.unpack("<" + self.fmt, raw)[0]
-
-
-def _table(table: str, rows: Sequence[tuple[int, str, str]], read_only: Iterable[str] = ()) -> dict[str, Register]:
-    read_only = set(read_only)
-    return {name: Register(name, address, kind, table, name not in read_only) for address, name, kind in rows}
-
-
-# Saved to flash by SAVE_CFG; writable only while torque is disabled. 0x1D is not documented anywhere.
-CONFIG_REGISTERS = _table("config", [
-    (0x00, "id", "u32"),
-    (0x01, "mode", "u32"),
-    (0x02, "baudrate", "u32"),  # encoding undocumented
-    (0x03, "homing_offset", "f32"),
-    (0x04, "p_gain_id", "f32"), (0x05, "i_gain_id", "f32"), (0x06, "d_gain_id", "f32"),
-    (0x07, "p_gain_iq", "f32"), (0x08, "i_gain_iq", "f32"), (0x09, "d_gain_iq", "f32"),
-    (0x0A, "p_gain_velocity", "f32"), (0x0B, "i_gain_velocity", "f32"), (0x0C, "d_gain_velocity", "f32"),
-    (0x0D, "p_gain_position", "f32"), (0x0E, "i_gain_position", "f32"), (0x0F, "d_gain_position", "f32"),
-    (0x10, "p_gain_force", "f32"), (0x11, "i_gain_force", "f32"), (0x12, "d_gain_force", "f32"),
-    (0x13, "limit_acc_max", "f32"),
-    (0x14, "limit_i_max", "f32"),
-    (0x15, "limit_velocity_max", "f32"),
-    (0x16, "limit_position_min", "f32"),
-    (0x17, "limit_position_max", "f32"),
-    (0x18, "min_voltage", "f32"),
-    (0x19, "max_voltage", "f32"),
-    (0x1A, "watchdog_timeout", "u32"),  # units undocumented
-    (0x1B, "temp_limit_low", "f32"),
-    (0x1C, "temp_limit_high", "f32"),
-    (0x1E, "return_time_delay", "u32"),  # Rust driver only, "experimental"
-])
-
-# Volatile. BULK_COMM only reaches these.
-STATUS_REGISTERS = _table("status", [
-    (0x00, "torque_enable", "u32"),
-    (0x01, "homing_complete", "u32"),
-    (0x02, "goal_id", "f32"),
-    (0x03, "goal_iq", "f32"),
-    (0x04, "goal_velocity", "f32"),
-    (0x05, "goal_position", "f32"),
-    (0x06, "present_id", "f32"),
-    (0x07, "present_iq", "f32"),
-    (0x08, "present_velocity", "f32"),
-    (0x09, "present_position", "f32"),
-    (0x0A, "input_voltage", "f32"),
-    (0x0B, "winding_temperature", "f32"),
-    (0x0C, "powerstage_temperature", "f32"),
-    (0x0D, "ic_temperature", "f32"),
-    (0x0E, "error_status", "u32"),
-    (0x0F, "warning_status", "u32"),
-], read_only=("homing_complete", "present_id", "present_iq", "present_velocity", "present_position",
-              "input_voltage", "winding_temperature", "powerstage_temperature", "ic_temperature",
-              "error_status", "warning_status"))
-
-REGISTER_ALIASES = {"limit_iq_max": "limit_i_max"}
-CONFIG_BY_ADDRESS = {r.address: r for r in CONFIG_REGISTERS.values()}
-STATUS_BY_ADDRESS = {r.address: r for r in STATUS_REGISTERS.values()}
-
-
-def _lookup(table: str, key: str | int | Register) -> Register:
-    by_name, by_address = (CONFIG_REGISTERS, CONFIG_BY_ADDRESS) if table == "config" else \
-        (STATUS_REGISTERS, STATUS_BY_ADDRESS)
-    if isinstance(key, Register):
-        if key.table != table:
-            raise ValueError(f"{key.name} is a {key.table} register, not a {table} register")
-        return key
-    found = by_address.get(key) if isinstance(key, int) else by_name.get(REGISTER_ALIASES.get(key, key))
-    if found is None:
-        raise ValueError(f"no BEAR {table} register {key!r}")
-    return found
-
-
-def config_register(key: str | int | Register) -> Register:
-    """A config register by name, alias or address."""
-    return _lookup("config", key)
-
-
-def status_register(key: str | int | Register) -> Register:
-    """A status register by name or address."""
-    return _lookup("status", key)
-
-
-# -- error byte -----------------------------------------------------------------------------------------------------
-class BearError(IntFlag):
-    """Bits of the error byte every reply carries. Bit 7 is always set: 0x80 means no error."""
-
-    COMMUNICATION = 0x01  # a corrupted packet was received (warning, resets by itself)
-    OVERHEAT = 0x02  # a temperature is above temp_limit_low (warning, resets by itself)
-    ABSOLUTE_POSITION = 0x04
-    WATCHDOG_ESTOP = 0x08  # external E-stop, torque_enable = 3 written, or watchdog expiry in torque mode
-    JOINT_LIMIT = 0x10
-    HARDWARE = 0x20  # input voltage out of range or MOSFET driver fault
-    INITIALIZATION = 0x40  # corrupted flash save; recalibration needed
-
-
-ERROR_OK = 0x80
-WARNING_BITS = BearError.COMMUNICATION | BearError.OVERHEAT
-FAULT_BITS = 0x7F & ~WARNING_BITS
-
-
-def error_flags(error: int) -> tuple[str, ...]:
-    """Names of the bits set in an error byte, e.g. ("watchdog_estop",); () for 0x80."""
-    return tuple(flag.name.lower() for flag in BearError if error & flag)
-
-
-# -- packets (pure: no I/O) -----------------------------------------------------------------------------------------
-def checksum(body: bytes | bytearray) -> int:
-    """~(sum of ID..last parameter) & 0xFF; the two header bytes are not included."""
-    return ~sum(body) & 0xFF
-
-
-def encode_frame(device_id: int, code: int, params: bytes = b"") -> bytes:
-    """FF FF ID LEN code params CHK. `code` is the instruction (host) or the error byte (device)."""
-    if not 0 <= device_id <= BROADCAST_ID:
-        raise ValueError(f"BEAR ID {device_id} is out of range 0..{BROADCAST_ID}")
-    if len(params) > MAX_PARAMS:
-        raise ValueError(f"{len(params)} parameter bytes do not fit one BEAR packet (at most {MAX_PARAMS})")
-    body = bytes((device_id, len(params) + 2, code)) + bytes(params)
-    return HEADER + body + bytes((checksum(body),))
-
-
-def encode_status(device_id: int, error: int, data: bytes = b"") -> bytes:
-    """A device's reply packet (what the emulator sends)."""
-    return encode_frame(device_id, error, data)
-
-
-def _same_table(registers: Sequence[Register]) -> str:
-    tables = {r.table for r in registers}
-    if len(tables) > 1:
-        raise ValueError("one packet reads or writes either config or status registers, not both")
-    return tables.pop() if tables else "status"
-
-
-def encode_ping(device_id: int) -> bytes:
-    return encode_frame(device_id, Instruction.PING)
-
-
-def encode_read(device_id: int, registers: Sequence[Register]) -> bytes:
-    code = Instruction.READ_CFG if _same_table(registers) == "config" else Instruction.READ_STAT
-    return encode_frame(device_id, code, bytes(r.address for r in registers))
-
-
-def encode_write(device_id: int, values: Sequence[tuple[Register, int | float]]) -> bytes:
-    code = Instruction.WRITE_CFG if _same_table([r for r, _ in values]) == "config" else Instruction.WRITE_STAT
-    return encode_frame(device_id, code, b"".join(bytes((r.address,)) + r.encode(v) for r, v in values))
-
-
-def encode_save_config(device_id: int) -> bytes:
-    return encode_frame(device_id, Instruction.SAVE_CFG)
-
-
-def encode_bulk(ids: Sequence[int], read_regs: Sequence[Register], write_regs: Sequence[Register] = (),
-                values=None) -> bytes:
-    """BULK_COMM to the broadcast ID. `values[k][j]` is motor ids[k]'s value of write_regs[j], packed by type."""
-    ids = [int(i) for i in ids]
-    if not ids or len(set(ids)) != len(ids) or not all(0 <= i <= MAX_DEVICE_ID for i in ids):
-        raise ValueError(f"BULK_COMM needs distinct device IDs in 0..{MAX_DEVICE_ID}, got {ids}")
-    for regs in (read_regs, write_regs):
-        if len(regs) > MAX_BULK_REGISTERS:
-            raise ValueError(f"BULK_COMM takes at most {MAX_BULK_REGISTERS} read and {MAX_BULK_REGISTERS} write "
-                             "registers")
-        if any(r.table != "status" for r in regs):
-            raise ValueError("BULK_COMM reaches status registers only")
-    if any(not r.writable for r in write_regs):
-        raise ValueError(f"read-only registers cannot be written: {[r.name for r in write_regs if not r.writable]}")
-    rows = [] if not write_regs else list(values if values is not None else ())
-    if len(rows) != (len(ids) if write_regs else 0):
-        raise ValueError(f"BULK_COMM needs one row of {len(write_regs)} values per ID ({len(ids)} IDs)")
-    flat: list[int | float] = []
-    for device_id, row in zip(ids, rows, strict=False):
-        row = list(row)
-        if len(row) != len(write_regs):
-            raise ValueError(f"ID {device_id}: {len(row)} values for {len(write_regs)} write registers")
-        flat.append(device_id)
-        flat.extend(r.check(v) for r, v in zip(write_regs, row, strict=True))
-    if not write_regs:
-        flat = list(ids)
-    per_motor = "B" + "".join(r.fmt for r in write_regs)
-    params = (bytes((len(ids), len(read_regs) << 4 | len(write_regs)))
-              + bytes(r.address for r in read_regs) + bytes(r.address for r in write_regs)
-              + struct.pack("<" + per_motor * len(ids), *flat))
-    return encode_frame(BROADCAST_ID, Instruction.BULK_COMM, params)
-
-
-def decode_values(registers: Sequence[Register], data: bytes) -> list[int | float]:
-    """Typed values of a reply's data, one per register in order."""
-    if len(data) != 4 * len(registers):
-        raise ValueError(f"{len(data)} data bytes for {len(registers)} registers")
-    return list(struct.unpack("<" + "".join(r.fmt for r in registers), data))
-
-
-def reply_length(n_registers: int) -> int:
-    """LEN of a reply carrying n register values."""
-    return 4 * n_registers + 2
-
-
-@dataclass(frozen=True)
-class StatusPacket:
-    id: int
-    error: int
-    data: bytes
-
-    @property
-    def flags(self) -> tuple[str, ...]:
-        return error_flags(self.error)
-
-
-class StatusParser:
-    """Finds status packets in a byte stream: skips garbage up to the next FF FF header, rejects (and counts in
-    `stats`) bad lengths, bad checksums, instruction packets and unexpected IDs, and keeps an incomplete packet until
-    more bytes come. Never raises on any input; holds at most one frame's worth of bytes.
-
-    After a bad checksum it drops one byte only, not the claimed frame: a real packet may start inside it. A frame
-    whose checksum matches but which holds the start of an expected reply (FF FF, ID, LEN, error byte) is taken for a
-    cut reply completed by the next one and dropped up to that start.
-    """
-
-    def __init__(self, stats: LinkStats | None = None):
-        self.stats = stats if stats is not None else LinkStats()
-        self._buffer = bytearray()
-        self._length: int | None = None
-        self._ids: frozenset[int] | None = None
-
-    def expect(self, length: int | None = None, ids: Iterable[int] | None = None) -> None:
-        """Accept only replies of this LEN and from these IDs (None: any). Gating on LEN means a false header in
-        garbage cannot make the parser wait for up to 255 bytes that will never come."""
-        self._length = length
-        self._ids = None if ids is None else frozenset(ids)
-
-    @property
-    def pending(self) -> int:
-        """Bytes held back: an incomplete packet (or a lone trailing 0xFF)."""
-        return len(self._buffer)
-
-    def clear(self) -> int:
-        dropped = len(self._buffer)
-        self._buffer.clear()
-        return dropped
-
-    def _reply_start_inside(self, buf: bytearray, total: int) -> int | None:
-        """Where, inside the frame buf[:total], the bytes read as the start of an expected reply: FF FF, an expected
-        ID, the expected LEN, an error byte with bit 7 (those present in the buffer). FF FF alone is not enough: a
-        float32 value holds it (present_iq 4.28 A is ff ff 88 40), and a motor at rest sends it every cycle."""
-        start = 2
-        while (inner := buf.find(HEADER, start, total)) != -1:
-            tail = buf[inner + 2:inner + 5]
-            ok = len(tail) == 3
-            if ok:
-                device_id, length, error = tail
-                ok = (device_id not in (0xFF, BROADCAST_ID) and error & 0x80
-                      and (self._ids is None or device_id in self._ids)
-                      and (length == self._length if self._length is not None else length >= 2))
-            if ok:
-                return inner
-            start = inner + 1
-        return None
-
-    def feed(self, data: bytes | bytearray) -> list[StatusPacket]:
-        buf = self._buffer
-        buf += data
-        found: list[StatusPacket] = []
-        while True:
-            if not skip_to_header(buf, HEADER, self.stats):
-                return found
-            if len(buf) < 5:
-                return found
-            device_id, length, error = buf[2], buf[3], buf[4]
-            reason = None
-            if device_id == 0xFF:  # FF FF FF: the header starts one byte later
-                reason = "garbage"
-            elif device_id == BROADCAST_ID or not error & 0x80:  # an instruction packet, not a reply
-                reason = "foreign"
-            elif length < 2 or (self._length is not None and length != self._length):
-                reason = "length"
-            if reason:
-                self.stats.reject(reason)
-                del buf[:1]
-                continue
-            total = 4 + length
-            if len(buf) < total:
-                return found
-            if checksum(buf[2:total - 1]) != buf[total - 1]:
-                self.stats.reject("checksum")
-                del buf[:1]
-                continue
-            inner = self._reply_start_inside(buf, total)
-            if inner is not None:
-                # A reply's start inside the frame: a reply cut short and completed by the next one's bytes, whose
-                # 8-bit checksum matched by chance (1 in 256), which would hand the loop a made-up sample.
-                # Resynchronise there.
-                self.stats.reject("truncated")
-                del buf[:inner]
-                continue
-            packet = StatusPacket(device_id, error, bytes(buf[5:total - 1]))
-            del buf[:total]
-            if self._ids is not None and device_id not in self._ids:
-                self.stats.reject("foreign")
-                continue
-            self.stats.packets += 1
-            found.append(packet)
 
 
 # -- replies --------------------------------------------------------------------------------------------------------

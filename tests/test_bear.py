@@ -13,16 +13,10 @@ import serial
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers.bear import (
-    CONFIG_REGISTERS,
-    CYCLE_READS,
-    MAX_FRAME,
-    STATUS_REGISTERS,
-    BearBus,
-    BearError,
+from drivers.bear import BearBus
+from drivers.bear_codec import (
     StatusPacket,
     StatusParser,
-    config_register,
     encode_bulk,
     encode_frame,
     encode_ping,
@@ -30,6 +24,14 @@ from drivers.bear import (
     encode_save_config,
     encode_status,
     encode_write,
+)
+from drivers.bear_registers import (
+    CONFIG_REGISTERS,
+    CYCLE_READS,
+    MAX_FRAME,
+    STATUS_REGISTERS,
+    BearError,
+    config_register,
     error_flags,
     status_register,
 )

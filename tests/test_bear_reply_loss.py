@@ -7,17 +7,9 @@ import time
 import numpy as np
 import pytest
 
-from drivers.bear import (
-    ERROR_OK,
-    MAX_STALL_CREDIT_S,
-    RATED_CURRENT_A,
-    BearBus,
-    StatusParser,
-    config_register,
-    encode_status,
-    reply_length,
-    status_register,
-)
+from drivers.bear import MAX_STALL_CREDIT_S, BearBus
+from drivers.bear_codec import StatusParser, encode_status, reply_length
+from drivers.bear_registers import ERROR_OK, RATED_CURRENT_A, config_register, status_register
 from drivers.emulators.bear import BearBusEmulator
 
 IDS = list(range(1, 11))

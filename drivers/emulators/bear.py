@@ -66,7 +66,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.bear import (
+from drivers.bear_codec import checksum, encode_status
+from drivers.bear_registers import (
     BROADCAST_ID,
     CONFIG_BY_ADDRESS,
     CONFIG_REGISTERS,
@@ -82,8 +83,6 @@ from drivers.bear import (
     Instruction,
     Register,
     TorqueEnable,
-    checksum,
-    encode_status,
     error_flags,
 )
 from drivers.emulators.pty_device import PtyDevice

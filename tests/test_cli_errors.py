@@ -1,0 +1,56 @@
+"""Every command a user runs answers a wrong file, a wrong value and a missing argument with one line that names
+the problem (after argparse's usage lines for a malformed command line), a non-zero exit code and no traceback."""
+
+from __future__ import annotations
+
+import pytest
+
+from bruce_hw.hw_check import main as hw_check
+from runtime.cli import main as bruce_run
+from runtime.emulate_cli import main as bruce_emulate
+from training.collect import main as bruce_collect
+from training.eval_cli import main as bruce_eval
+from training.export import main as bruce_export
+from training.train_dynamics import main as bruce_train
+
+CASES = [
+    # (command, argv, what the last line must say)
+    (bruce_run, ["--config", "nope.yaml"], "nope.yaml: robot config file not found"),
+    (bruce_run, ["--gap", "nope", "--rerun", "off"], "unknown reality-gap profile 'nope'"),
+    (bruce_run, ["--duration", "-1"], "argument --duration: expected a duration > 0 s, got -1"),
+    (bruce_run, ["--set", "rates.loop_hz=7"], "rates.loop_hz"),
+    (bruce_run, ["--cmd"], "argument --cmd: expected one argument"),
+    (bruce_emulate, ["--config", "nope.yaml"], "nope.yaml: robot config file not found"),
+    (bruce_emulate, ["--bear-delay", "-1"], "--bear-delay: -1 s is not a delay in [0, 0.1] s"),
+    (hw_check, ["--config", "nope.yaml"], "nope.yaml: robot config file not found"),
+    (hw_check, ["--rtt-cycles", "x"], "--rtt-cycles: 'x' is not a count in 0..100000"),
+    (bruce_collect, ["--seconds", "1", "--out", "x.npz", "--config", "nope.yaml"],
+     "nope.yaml: robot config file not found"),
+    (bruce_collect, ["--seconds", "-1", "--out", "x.npz"], "argument --seconds: expected a duration > 0 s"),
+    (bruce_collect, [], "the following arguments are required: --out"),
+    (bruce_train, ["--data", "nope.npz", "--model", "pinn", "--out", "x.pt"], "nope.npz: dataset file not found"),
+    (bruce_train, ["--data", "x.npz", "--model", "nope", "--out", "x.pt"], "argument --model: invalid choice: 'nope'"),
+    (bruce_train, ["--data", "x.npz"], "the following arguments are required: --model, --out"),
+    (bruce_export, ["--checkpoint", "nope.pt", "--out", "x.onnx"], "checkpoint nope.pt: file not found"),
+    (bruce_export, ["--checkpoint", "x.pt"], "the following arguments are required: --out"),
+    (bruce_eval, ["transfer", "--gap", "nope", "--out", "out"], "unknown reality-gap profile 'nope'"),
+    (bruce_eval, ["transfer", "--out", "out", "--seeds", "a"], "--seeds: expected comma-separated numbers"),
+    (bruce_eval, ["transfer"], "the following arguments are required: --out"),
+    (bruce_eval, ["dynamics", "--data", "nope.npz", "--model", "pinn=x.pt", "--out", "out"],
+     "nope.npz: dataset file not found"),
+]
+
+
+@pytest.mark.parametrize("command, argv, says", CASES, ids=[f"{c.__module__}:{' '.join(a)}" for c, a, _ in CASES])
+def test_a_bad_command_line_is_one_clear_line(command, argv, says, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    try:
+        code = command(argv)
+    except SystemExit as exc:  # argparse: usage lines, then one error line
+        code = exc.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code not in (0, None), err
+    assert err and says in err[-1], err
+    assert not any("Traceback" in line for line in err)
+    usage = [line for line in err[:-1] if not line.startswith(("usage:", " "))]
+    assert not usage, f"more than one line besides argparse's usage: {err}"
