@@ -28,7 +28,7 @@ from bruce_hw.types import FootContacts, GroundTruth, ImuSample, JointState, Rob
 from runtime.estimation import BaseEstimate, euler_of, rotate_to_body
 from runtime.inference import ModelError
 from runtime.mixing import eq8_torque
-from runtime.reference_models import nominal_backend
+from runtime.reference_models import nominal_backend, set_state
 from runtime.safety import SafetyStage
 
 
@@ -73,9 +73,7 @@ class NominalTwin:
             truth = self.base_state()
             if truth is None:
                 raise ModelError("nominal twin: the robot's full state is gone (mock backend only)")
-            data.qpos[0:3], data.qpos[3:7] = truth.base_pos, truth.base_quat
-            data.qvel[0:3], data.qvel[3:6] = truth.base_linvel, truth.base_angvel
-            data.qpos[self._qpos], data.qvel[self._dofs] = q, qd
+            set_state(data, self._qpos, self._dofs, truth, q, qd)
             mujoco.mj_forward(self.model, data)
             if last_torque is not None:
                 self.safety.previous = np.array(last_torque, dtype=float)

@@ -46,6 +46,15 @@ def nominal_backend(config: RobotConfig, base_state: Callable[[], GroundTruth | 
     return nominal
 
 
+def set_state(data: mujoco.MjData, qpos: slice, dofs: slice, base: GroundTruth, q: np.ndarray,
+              qd: np.ndarray) -> None:
+    """Put the nominal model at the simulator's base state and the given joint state (`qpos`, `dofs`: the joints'
+    slices in qpos and qvel)."""
+    data.qpos[0:3], data.qpos[3:7] = base.base_pos, base.base_quat
+    data.qvel[0:3], data.qvel[3:6] = base.base_linvel, base.base_angvel
+    data.qpos[qpos], data.qvel[dofs] = q, qd
+
+
 class PinnReference:
     """The ONNX PINN as a reference model (one call per `step`, the LSTM state carried)."""
 
@@ -92,9 +101,7 @@ class NominalReference:
             base = self._base_state()
             if base is None:
                 raise ModelError("nominal reference model: needs the simulator's base state (mock backend only)")
-            data.qpos[0:3], data.qpos[3:7] = base.base_pos, base.base_quat
-            data.qvel[0:3], data.qvel[3:6] = base.base_linvel, base.base_angvel
-            data.qpos[self._qpos], data.qvel[self._dofs] = q, qd
+            set_state(data, self._qpos, self._dofs, base, q, qd)
         data.ctrl[self._acts] = self._coupling.saturate(tau, self._torque_limit)
         mujoco.mj_step(self.model, data)
         self._last = (data.qpos[self._qpos].copy(), data.qvel[self._dofs].copy())
