@@ -16,14 +16,6 @@ from bruce_hw.leg_bus import LegReading, silence
 
 log = logging.getLogger("bruce_hw.hw")
 
-# BRUCE-OP v0.0.7's BEAR settings (its `run_bear` start-up); the current limit comes from the config.
-BEAR_GAINS = {
-    "p_gain_id": 0.277, "i_gain_id": 0.061, "d_gain_id": 0.0,
-    "p_gain_iq": 0.277, "i_gain_iq": 0.061, "d_gain_iq": 0.0,
-    "p_gain_velocity": 1.0, "i_gain_velocity": 0.0, "d_gain_velocity": 0.0,
-    "p_gain_position": 60.0, "i_gain_position": 0.0, "d_gain_position": 1.0,
-    "p_gain_force": 10.0, "i_gain_force": 0.0, "d_gain_force": 1.0,
-}
 POSITION_LIMIT_MARGIN = 0.1   # rad beyond the actuator range the joint box reaches, for the BEARs' own limit
 MONITOR_EVERY_TICKS = 100     # one BEAR's temperatures and voltage per this many ticks
 TEMPERATURE_WARN_C = 75.0     # BRUCE-OP warns above this winding temperature ...
@@ -152,7 +144,8 @@ class BearLegs:
         low, high = actuator_position_limits(self.config)
         for k, device_id in enumerate(self.ids):
             settings = {"mode": int(Mode.TORQUE), "limit_i_max": self.i_max, "limit_position_min": float(low[k]),
-                        "limit_position_max": float(high[k]), "watchdog_timeout": self.watchdog_count, **BEAR_GAINS}
+                        "limit_position_max": float(high[k]), "watchdog_timeout": self.watchdog_count,
+                        **dict(self.config.buses.bear.gains)}
             try:
                 bus.write_config(device_id, settings, verify=True)  # torque is disabled: read back, or it raises
                 self.homing_offset[k] = bus.read_config(device_id, "homing_offset")["homing_offset"]

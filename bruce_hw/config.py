@@ -25,6 +25,7 @@ import numpy as np
 import yaml
 
 from bruce_hw.coupling import Coupling
+from drivers.bear_registers import CONFIG_REGISTERS as BEAR_CONFIG_REGISTERS
 from drivers.bear_registers import RATED_CURRENT_A
 from drivers.can_motor import MitRanges  # the MIT frame ranges: one type for the config and the driver
 
@@ -58,6 +59,8 @@ class SerialBus:
     watchdog_unit_s: float = 0.0
     # How long one request waits for its replies (BEAR bus: a bulk cycle's, on the bus thread; 0: the driver's own).
     reply_timeout_s: float = 0.0
+    # BEAR bus: the actuators' own PID gain registers, written with torque disabled and read back at start-up.
+    gains: tuple[tuple[str, float], ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -358,6 +361,7 @@ BOUNDS: dict[str, Bound] = {
     "buses.bear.watchdog_s": Bound(0.005, 1.0, "s", "a lost host must end in damping"),
     "buses.bear.watchdog_unit_s": Bound(1e-6, 1.0, "s", "seconds per watchdog count"),
     "buses.bear.reply_timeout_s": Bound(0.0005, 0.02, "s", "a bulk cycle's reply wait (BRUCE-OP: 2 ms)"),
+    "buses.bear.gains.*": Bound(0.0, 1000.0, "", "a BEAR PID gain register (float32), never negative"),
     "buses.dynamixel.ids[*]": Bound(0, 252, "", "Dynamixel Protocol 2.0 IDs", integer=True),
     "buses.dynamixel.watchdog_s": Bound(0.02, 2.54, "s", "Bus Watchdog register 1..127 x 20 ms", step=0.02),
     "buses.can.bitrate": Bound(10_000, 1_000_000, "bit/s", "classic CAN", integer=True),
@@ -522,7 +526,7 @@ def _serial(r: _Reader, key: str, n_ids: int | None = None, watchdog_unit_s: flo
     if n_ids is not None:
         allowed |= {"ids", "watchdog_s"}
         if watchdog_unit_s is None:  # the BEAR bus
-            allowed |= {"watchdog_unit_s", "reply_timeout_s"}
+            allowed |= {"watchdog_unit_s", "reply_timeout_s", "gains"}
     node = r.mapping(key, allowed)
     bus = SerialBus(port=r.string(f"{key}.port"), baud=r.number(f"{key}.baud"))
     if n_ids is None:
@@ -545,8 +549,22 @@ def _serial(r: _Reader, key: str, n_ids: int | None = None, watchdog_unit_s: flo
     else:
         watchdog_s = r.number(f"{key}.watchdog_s") if "watchdog_s" in node else 0.0
     reply_timeout_s = r.number(f"{key}.reply_timeout_s") if "reply_timeout_s" in node else 0.0
+    gains = _bear_gains(r, f"{key}.gains") if "gains" in allowed and "watchdog_unit_s" in allowed else ()
     return replace(bus, ids=ids, watchdog_s=watchdog_s, watchdog_unit_s=watchdog_unit_s,
-                   reply_timeout_s=reply_timeout_s)
+                   reply_timeout_s=reply_timeout_s, gains=gains)
+
+
+BEAR_GAIN_REGISTERS = tuple(name for name in BEAR_CONFIG_REGISTERS if "_gain_" in name)
+
+
+def _bear_gains(r: _Reader, key: str) -> tuple[tuple[str, float], ...]:
+    """Every PID gain register of the BEARs (the driver's config table), by name: what start-up writes."""
+    node = r.mapping(key, set(BEAR_GAIN_REGISTERS))
+    missing = [name for name in BEAR_GAIN_REGISTERS if name not in node]
+    if missing:
+        raise r.fail(f"{key}.{missing[0]}", f"a value for every BEAR gain register ({', '.join(BEAR_GAIN_REGISTERS)})",
+                     show_got=False)
+    return tuple((name, r.number(f"{key}.{name}")) for name in BEAR_GAIN_REGISTERS)
 
 
 _CAN_KEYS = {"interface", "channel", "bitrate", "host_id", "timeout_s", "motor_type", "ranges", "motors"}

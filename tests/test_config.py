@@ -177,3 +177,16 @@ def test_arm_servo_signs_come_from_the_config_and_are_plus_or_minus_one(raw_conf
     raw_config["arms"]["servo_signs"]["r_elbow"] = 0
     with pytest.raises(ConfigError, match=r"arms\.servo_signs\.r_elbow: expected \+1 or -1, got 0\.0"):
         load_config(write_config(raw_config))
+
+
+def test_bear_gains_come_from_the_config_and_every_gain_register_is_required(raw_config, write_config):
+    from bruce_hw.config import BEAR_GAIN_REGISTERS, ConfigError, load_config
+
+    gains = dict(load_config().buses.bear.gains)
+    assert set(gains) == set(BEAR_GAIN_REGISTERS) and gains["p_gain_iq"] == 0.277  # BRUCE-OP v0.0.7's
+    del raw_config["buses"]["bear"]["gains"]["d_gain_force"]
+    with pytest.raises(ConfigError, match=r"buses\.bear\.gains\.d_gain_force: expected a value for every BEAR gain"):
+        load_config(write_config(raw_config))
+    raw_config["buses"]["bear"]["gains"]["d_gain_force"] = -1.0
+    with pytest.raises(ConfigError, match=r"buses\.bear\.gains\.d_gain_force"):
+        load_config(write_config(raw_config))

@@ -192,3 +192,17 @@ def test_bruce_run_hw_stands_and_shuts_down_into_damping(emulator, hw_config, tm
     assert not any(status["dynamixel"]["torque_enabled"])   # arms: torque off on exit, as BRUCE-OP
     np.testing.assert_allclose(plant["arm_q"], hw_config.arms.hold_pose, atol=0.02)  # they were held
     assert status["bear"]["bulk_comm"] >= 3000
+
+
+def test_start_up_writes_the_configs_bear_gains_and_reads_them_back(emulator, hw_config):
+    config = load_config(overrides=emulator.overrides + WALL_CLOCK_SLACK + ["buses.bear.gains.p_gain_iq=0.25"])
+    backend = make_hw_backend(config, check_imu=False)
+    backend.configure()
+    try:
+        bus = backend.legs.bus
+        for device_id in config.buses.bear.ids:
+            written = bus.read_config(device_id, ["p_gain_iq", "i_gain_iq", "p_gain_force"])
+            assert written["p_gain_iq"] == pytest.approx(0.25) and written["i_gain_iq"] == pytest.approx(0.061)
+            assert written["p_gain_force"] == pytest.approx(10.0)
+    finally:
+        backend.shutdown()
