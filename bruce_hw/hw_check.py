@@ -51,6 +51,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bruce_hw.bus_startup import ids_text
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, RobotConfig, load_config
 
 PROG = "bruce-hw-check"
@@ -88,7 +89,7 @@ class BusReport:
     def problem(self) -> str:
         """One phrase naming the bus and what is wrong with it (empty when ok)."""
         what = ([f"cannot use the bus ({self.error})"] if self.error else []) + (
-            [f"missing {_ids(self.missing)}"] if self.missing else []) + (
+            [f"missing {ids_text(self.missing)}"] if self.missing else []) + (
             [f"{len(self.faults)} device(s) with faults"] if self.faults else [])
         return f"{self.name.split(' (')[0]}: {', '.join(what)}" if what else ""
 
@@ -109,7 +110,7 @@ def check_bear(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
     from drivers.errors import BusTimeout, DriverError
 
     bus_cfg = config.buses.bear
-    report = BusReport(f"BEAR bus {bus_cfg.port} ({bus_cfg.baud} baud, IDs {_ids(bus_cfg.ids)})")
+    report = BusReport(f"BEAR bus {bus_cfg.port} ({bus_cfg.baud} baud, IDs {ids_text(bus_cfg.ids)})")
     try:
         # A late answer is still an answer: how late is the round trip's business, not a reason to call it missing.
         bus = BearBus(bus_cfg.port, bus_cfg.baud, reply_timeout_s=PRESENCE_TIMEOUT_S)
@@ -147,7 +148,7 @@ def check_bear(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
         answering = [i for i in bus_cfg.ids if i not in report.missing]
         if rtt_cycles and answering:
             if enabled:
-                report.lines.append(f"round trip not measured: ID(s) {_ids(enabled)} read torque_enable 1 (each "
+                report.lines.append(f"round trip not measured: ID(s) {ids_text(enabled)} read torque_enable 1 (each "
                                     "packet would feed the watchdog of a motor that is on); disable torque first")
             else:
                 bus.reply_timeout_s = RTT_REPLY_TIMEOUT_S
@@ -165,7 +166,7 @@ def check_dynamixel(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
     from drivers.dynamixel import decode_hardware_error, decode_status_error
 
     bus_cfg = config.buses.dynamixel
-    report = BusReport(f"Dynamixel bus {bus_cfg.port} ({bus_cfg.baud} baud, IDs {_ids(bus_cfg.ids)})")
+    report = BusReport(f"Dynamixel bus {bus_cfg.port} ({bus_cfg.baud} baud, IDs {ids_text(bus_cfg.ids)})")
     try:
         from dynamixel_sdk import COMM_SUCCESS, PacketHandler, PortHandler
     except ImportError as exc:
@@ -258,7 +259,7 @@ def check_can(config: RobotConfig) -> BusReport:
 
     can = config.buses.can
     ids = [m.id for m in can.motors]
-    report = BusReport(f"CAN {can.interface} {', '.join(can.channels)} (motor IDs {_ids(ids)})")
+    report = BusReport(f"CAN {can.interface} {', '.join(can.channels)} (motor IDs {ids_text(ids)})")
     try:
         group = CanMotorGroup.from_config(can)
     except (DriverError, ValueError) as exc:
@@ -719,10 +720,6 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     print(f"{PROG}: OK, every device answers")
     return 0
-
-
-def _ids(ids) -> str:
-    return ", ".join(str(i) for i in ids)
 
 
 def _vec(v) -> str:

@@ -24,6 +24,7 @@ from bruce_hw.backend import Backend
 from bruce_hw.config import RobotConfig
 from runtime.mixing import eq8_torque
 from runtime.observers import TRACKING_SKIP_S, TickObserver, TickView
+from runtime.reference_models import nominal_backend, set_state
 from runtime.safety import SafetyStage, SafetyState
 
 
@@ -35,13 +36,8 @@ class TwinMetric(TickObserver):
         self.squared_error_sum: np.ndarray | None = None
 
     def on_start(self, backend: Backend, config: RobotConfig) -> None:
-        from bruce_hw.mock import MujocoBackend  # MuJoCo loads only where the metric runs
-
-        if backend.ground_truth() is None:
-            raise ValueError(f"twin metric: needs the simulator's state, which the {backend.name} backend does not "
-                             "have (mock only)")
-        nominal = MujocoBackend(config)
-        nominal.configure()  # finds the joints and motors, checks the MJCF
+        nominal = nominal_backend(config, backend.ground_truth, f"twin metric: needs the simulator's state, which "
+                                  f"the {backend.name} backend does not have (mock only)")
         self.model, self.data = nominal.model, nominal.data
         self._qpos, self._dofs, self._acts = nominal._qpos, nominal._dofs, nominal._acts
         self.eq8, self.coupling, self.torque_limit = config.eq8, config.coupling, config.actuator_torque_limit
@@ -66,9 +62,7 @@ class TwinMetric(TickObserver):
                 error = data.qpos[self._qpos] - truth.joint_q
                 self.squared_error_sum += error * error
                 self.windows += 1
-            data.qpos[0:3], data.qpos[3:7] = truth.base_pos, truth.base_quat
-            data.qvel[0:3], data.qvel[3:6] = truth.base_linvel, truth.base_angvel
-            data.qpos[self._qpos], data.qvel[self._dofs] = truth.joint_q, truth.joint_qd
+            set_state(data, self._qpos, self._dofs, truth, truth.joint_q, truth.joint_qd)
             self.safety.previous = self._last_sent.copy()
             self._synced = True
         np.copyto(self._last_sent, view.tau)

@@ -103,15 +103,27 @@ def test_bear_round_trips_follow_the_delay_and_the_command_changes_it(emulator):
     emulator.send("delay bear 0")
 
 
+def settled_status(emulator, timeout_s: float = 5.0) -> dict:
+    """The emulator's status once the physics has stopped stepping (two readings 50 ms apart agree): the step of the
+    last bulk cycle comes after its replies, later still on a busy machine."""
+    deadline = time.monotonic() + timeout_s
+    status = emulator.status()
+    while time.monotonic() < deadline:
+        time.sleep(0.05)
+        newer = emulator.status()
+        if newer["plant"]["steps"] == status["plant"]["steps"]:
+            return newer
+        status = newer
+    return status
+
+
 def test_lockstep_steps_once_per_bulk_cycle_with_a_delay(emulator):
     emulator.send("delay bear 0.002 0.001")
     with BearBus(_port(emulator, "bear"), reply_timeout_s=0.02) as bus:
         bus.bulk_cycle(IDS, None)
-        time.sleep(0.05)  # a cycle's step runs after its replies are out: this one's before the count starts
-        before = emulator.status()
+        before = settled_status(emulator)  # a cycle's step runs after its replies are out: this one's before the count
         _bulk_round_trips(bus, 50)
-        time.sleep(0.05)
-        after = emulator.status()
+        after = settled_status(emulator)
         # one step per BULK_COMM the emulator got (a reply later than the timeout on a loaded machine is asked again)
         cycles = after["bear"]["bulk_comm"] - before["bear"]["bulk_comm"]
         assert cycles >= 50 and after["plant"]["steps"] - before["plant"]["steps"] == cycles
