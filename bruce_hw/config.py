@@ -476,12 +476,23 @@ class _Reader:
         return np.stack([self.vector(f"{key}.{name}", width) for name in joints])
 
 
-def _resolve_mjcf(config_path: Path, name: str, key: str) -> Path:
+def find_mjcf(name: str | Path, beside: Path | None = None) -> Path | None:
+    """A MuJoCo model file: `name` as a path (relative to the directory `beside`, else the working directory),
+    else the file of that name shipped in bruce_hw/models/; None when neither exists."""
     candidate = Path(name)
-    for path in (candidate if candidate.is_absolute() else config_path.parent / candidate, _MODELS_DIR / name):
+    if not candidate.is_absolute() and beside is not None:
+        candidate = beside / candidate
+    for path in (candidate, _MODELS_DIR / candidate.name):
         if path.is_file():
             return path.resolve()
-    raise ConfigError(f"{config_path}: {key}: model file {name!r} not found beside the config or in {_MODELS_DIR}")
+    return None
+
+
+def _resolve_mjcf(config_path: Path, name: str, key: str) -> Path:
+    path = find_mjcf(name, beside=config_path.parent)
+    if path is None:
+        raise ConfigError(f"{config_path}: {key}: model file {name!r} not found beside the config or in {_MODELS_DIR}")
+    return path
 
 
 def _limits(r: _Reader, key: str, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:

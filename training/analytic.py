@@ -61,11 +61,11 @@ import numpy as np
 import torch
 from torch import nn
 
+from bruce_hw.config import find_mjcf
+
 if TYPE_CHECKING:
     from bruce_hw.config import RobotConfig
     from training.dataset import DatasetStats
-
-_MODELS_DIR = Path(__file__).resolve().parent.parent / "bruce_hw" / "models"
 
 BRUCE_JOINTS = ("r_hip_yaw", "r_hip_pitch", "r_hip_roll", "r_knee", "r_ankle",
                 "l_hip_yaw", "l_hip_pitch", "l_hip_roll", "l_knee", "l_ankle")
@@ -120,11 +120,10 @@ class AnalyticConfig:
 
 
 def resolve_mjcf(name: str | Path) -> Path:
-    path = Path(name)
-    for candidate in (path, _MODELS_DIR / path.name):
-        if candidate.is_file():
-            return candidate.resolve()
-    raise FileNotFoundError(f"analytic model: MuJoCo model {str(name)!r} not found (nor in {_MODELS_DIR})")
+    path = find_mjcf(name)
+    if path is None:
+        raise FileNotFoundError(f"analytic model: MuJoCo model {str(name)!r} not found (nor in bruce_hw/models)")
+    return path
 
 
 @dataclass(frozen=True)
