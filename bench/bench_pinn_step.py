@@ -29,9 +29,9 @@ import onnxruntime as ort
 import torch
 
 from runtime.inference import OnnxPinn, session_options
-from training.evaluate import timed_calls
-from training.export import export_pinn_onnx
-from training.pinn import PinnStep, make_random_pinn
+from training.dynamics.export import export_pinn_onnx
+from training.dynamics.pinn import PinnStep, make_random_pinn
+from training.evaluation.dynamics_eval import timed_calls
 
 P99_GOAL_US = 100.0
 SPEEDUP_GOAL = 10.0

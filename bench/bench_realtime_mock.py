@@ -22,8 +22,8 @@ import torch
 from bruce_hw import load_config, make_backend
 from runtime.run import run_session
 from runtime.telemetry import parse_sink
-from training.export import export_pinn_onnx
-from training.pinn import make_random_pinn
+from training.dynamics.export import export_pinn_onnx
+from training.dynamics.pinn import make_random_pinn
 
 LATE_SHARE_GOAL = 0.001
 WORK_P99_GOAL_US = 300.0

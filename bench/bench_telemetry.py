@@ -130,8 +130,8 @@ def realtime_session(config, seconds: float, transfer: str, sink) -> tuple[dict,
         if transfer == "pinn":
             import torch
 
-            from training.export import export_pinn_onnx
-            from training.pinn import make_random_pinn
+            from training.dynamics.export import export_pinn_onnx
+            from training.dynamics.pinn import make_random_pinn
 
             model = make_random_pinn(seed=0)
             with torch.no_grad():

@@ -1,6 +1,6 @@
 """Paper-config training cost on this machine: seconds per epoch and the projected 1000-epoch total.
 
-Times `training.train_dynamics.run_epoch` (the exact training step: TBPTT windows, Eq. 7, AdamW) with the paper's
+Times `training.dynamics.train.run_epoch` (the exact training step: TBPTT windows, Eq. 7, AdamW) with the paper's
 model and training settings on 90 s of walking data (the paper's amount; collected here with the committed policy
 unless --data is given), after one untimed warm-up epoch. Goal (issue #5): the full paper config (1000 epochs)
 <= 30 min on 2 cores.
@@ -19,10 +19,10 @@ import numpy as np
 import torch
 
 from bruce_hw.config import load_config
-from training.checkpoint import build_model
 from training.collect import CollectSettings, collect
 from training.dataset import compute_stats, load_dataset, save_dataset, split_by_time
-from training.train_dynamics import MODEL_PRESETS, Eq7Loss, TrainConfig, make_optimizer, run_epoch
+from training.dynamics.checkpoint import build_model
+from training.dynamics.train import MODEL_PRESETS, Eq7Loss, TrainConfig, make_optimizer, run_epoch
 
 TOTAL_GOAL_MIN = 30.0
 

@@ -15,9 +15,12 @@ import math
 
 import numpy as np
 
+from bruce_hw.quaternion import roll_pitch_quaternion, rotation_entries, world_z_in_body
+from bruce_hw.types import GRAVITY
+
 # rad/s of correction per rad of tilt error: a ~3 s time constant, long next to a step (0.1-0.3 s), so the
 # horizontal accelerations of walking and pushes (which |a| barely shows) average out, short next to the
-# drift of a gyro bias (minutes); a 1 s constant let walking's sway leak into the roll estimate (docs/walking.md).
+# drift of a gyro bias (minutes); a shorter one lets walking's sway leak into the roll estimate (docs/walking.md).
 ATTITUDE_GAIN = 0.3
 # 1/s^2, integral of the same error into the gyro bias: poles at -0.04 and -0.26 1/s with the gain above, so a
 # bias is learned in ~30 s without overshoot, and the gait's periodic tilt error does not wind it up. A heading
@@ -32,7 +35,7 @@ MAX_IMU_GAP_S = 0.01
 
 
 class MahonyAttitude:
-    def __init__(self, gravity: float = 9.81):
+    def __init__(self, gravity: float = GRAVITY):
         self.gravity = gravity
         self.quat = (1.0, 0.0, 0.0, 0.0)      # (w, x, y, z), IMU (base) -> world
         self.gyro_bias = (0.0, 0.0, 0.0)     # rad/s
@@ -52,8 +55,7 @@ class MahonyAttitude:
         if self.accel_trust(math.sqrt(ax * ax + ay * ay + az * az)) > 0.0:
             roll = math.atan2(ay, az)
             pitch = math.atan2(-ax, math.hypot(ay, az))
-        cr, sr, cp, sp = math.cos(roll / 2), math.sin(roll / 2), math.cos(pitch / 2), math.sin(pitch / 2)
-        self.quat = (cp * cr, cp * sr, sp * cr, -sp * sr)  # q_y(pitch) q_x(roll): ZYX with yaw 0
+        self.quat = roll_pitch_quaternion(roll, pitch)
         self.gyro_bias = (0.0, 0.0, 0.0)
         self.angvel = tuple(float(v) for v in gyro)
         self.stamp = stamp
@@ -77,21 +79,22 @@ class MahonyAttitude:
         self.angvel = (gx, gy, gz)
         if dt <= 0.0:
             return self.quat
-        w, x, y, z = self.quat
+        w, x, y, z = quat = self.quat
         ax, ay, az = accel.tolist()
-        vx, vy, vz = 2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z  # estimated up
         if linear_accel is None:
+            vx, vy, vz = world_z_in_body(quat)  # the estimated up
             norm = math.sqrt(ax * ax + ay * ay + az * az)
             trust = self.accel_trust(norm)
             if trust > 0.0:
                 ux, uy, uz = ax / norm, ay / norm, az / norm
         else:
-            # The specific force less the base's acceleration (R^T of it, the rows of R^T being R's columns), in g.
+            # The specific force less the base's acceleration (R^T of it), in g; R's last row is the estimated up.
+            r00, r01, r02, r10, r11, r12, vx, vy, vz = rotation_entries(quat)
             lx, ly, lz = linear_accel
             k = 1.0 / self.gravity
-            ux = k * (ax - ((1 - 2 * (y * y + z * z)) * lx + 2 * (x * y + w * z) * ly + vx * lz))
-            uy = k * (ay - (2 * (x * y - w * z) * lx + (1 - 2 * (x * x + z * z)) * ly + vy * lz))
-            uz = k * (az - (2 * (x * z + w * y) * lx + 2 * (y * z - w * x) * ly + vz * lz))
+            ux = k * (ax - (r00 * lx + r10 * ly + vx * lz))
+            uy = k * (ay - (r01 * lx + r11 * ly + vy * lz))
+            uz = k * (az - (r02 * lx + r12 * ly + vz * lz))
             trust = 1.0
         cx, cy, cz = gx, gy, gz
         if trust > 0.0:

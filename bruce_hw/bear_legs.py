@@ -148,6 +148,7 @@ class BearLegs:
                         **dict(self.config.buses.bear.gains)}
             try:
                 bus.write_config(device_id, settings, verify=True)  # torque is disabled: read back, or it raises
+                # per-robot calibration kept in the BEARs' flash (as BRUCE-OP treats it): read, never written
                 self.homing_offset[k] = bus.read_config(device_id, "homing_offset")["homing_offset"]
             except DriverError as exc:
                 problems.append(f"{self.name}: ID {device_id}: writing limits, gains and watchdog: {exc}")

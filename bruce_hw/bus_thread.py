@@ -1,25 +1,11 @@
-"""A bus's cycles on a thread of its own, so that the 1 kHz tick never waits for serial I/O.
+"""A bus's cycles on a thread of its own (`BusThread`), so that the 1 kHz tick never waits for serial I/O.
 
 BRUCE-OP runs its BEAR bulk cycle in a process of its own and shares the latest state through shared memory; this
-is the same idea inside the hw backend. The control thread's write() hands over the newest command and wakes the
-thread, which starts a cycle at once (or right after the one in flight); read() takes the newest complete reading
-and never waits. So a bus cycle overlaps the tick's pacing sleep instead of its work: with a fast bus the reading a
-tick gets is a fraction of a millisecond old, with a slow one (a USB adapter with 2 ms of latency) the loop still
-ticks at its rate on readings as old as the bus makes them, and the data-age check judges them.
-
-Without a wake-up the thread cycles on its own every `period_s`, resending the newest command (goal writes are
-idempotent; before the first one, read-only cycles), so a tick that runs late still finds a fresh reading. It does
-that only while the newest command (or the start) is at most `hold_s` old: a control thread that hangs (or a
-process that is frozen) stops the cycles, and the motors' own watchdogs take over, as they do for a killed process.
-An exception in a cycle ends the thread; `error` keeps it for the control thread to raise. `halt(reading)`, run on
-this thread after every cycle, may act on a reading that cannot wait for the next tick (the hw backend damps every
-BEAR on an E-stop or a device fault) and return its cause: the thread then ends, with `halted` and `halted_at` set,
-and the reading stays `latest` for the control thread to act on.
-
-Scheduling: the hw backend puts this thread one real-time priority step above the loop (`bruce_hw.io_priority`).
-
-Cycle durations go into a fixed ring (`CYCLE_RING` of them, microseconds) for the run's percentiles: no allocation
-per cycle.
+is the same idea inside the hw backend. The control thread's write() hands over the newest command (`post`) and
+wakes the thread, which starts a cycle at once (or right after the one in flight); read() takes the newest complete
+reading (`latest`) and never waits, so a bus cycle overlaps the tick's pacing sleep instead of its work
+(docs/timing.md). The hw backend puts this thread one real-time priority step above the loop
+(`bruce_hw.io_priority`).
 """
 
 from __future__ import annotations
@@ -31,10 +17,19 @@ from typing import Any
 
 import numpy as np
 
-CYCLE_RING = 1 << 16
+CYCLE_RING = 1 << 16  # cycle durations (microseconds) kept for the run's percentiles: no allocation per cycle
 
 
 class BusThread:
+    """Without a wake-up the thread cycles on its own every `period_s`, resending the newest command (goal writes are
+    idempotent; before the first one, read-only cycles), so a tick that runs late still finds a fresh reading; but
+    only while that command (or the start) is at most `hold_s` old: a control thread that hangs, or a frozen
+    process, stops the cycles and the motors' own watchdogs take over, as for a killed process. An exception in a
+    cycle ends the thread; `error` keeps it for the control thread to raise. `halt(reading)`, run after every cycle,
+    may act on a reading that cannot wait for the next tick (the hw backend damps every BEAR on an E-stop or a device
+    fault) and return its cause: the thread then ends with `halted` and `halted_at` set, the reading still `latest`
+    for the control thread to act on."""
+
     def __init__(self, name: str, cycle: Callable[[Any], Any], *, period_s: float, hold_s: float,
                  halt: Callable[[Any], str | None] | None = None):
         self.name = name

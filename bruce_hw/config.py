@@ -5,26 +5,23 @@ file, the dotted key path and what was expected, before anything talks to a robo
 
 Every numeric setting has a physical range in `BOUNDS` (dotted key patterns -> `Bound`; docs/config_bounds.md is
 the same table for users); relations between settings (a standing pose inside the soft limits, a torque limit the
-actuators can reach) narrow it further where the file is read. `Bound` and `checked_number` are shared with the
-reality-gap profiles and the command scenarios.
+actuators can reach) narrow it further where the file is read. The file is read through
+`bruce_hw.yaml_reader.YamlReader`, as the reality-gap profiles and the command scenarios are.
 """
 
 from __future__ import annotations
 
-import copy
-import functools
 import itertools
 import math
-import re
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from bruce_hw.coupling import Coupling
+from bruce_hw.yaml_reader import Bound, YamlReader, apply_overrides, bound_lookup, read_yaml
 from drivers.bear_registers import CONFIG_REGISTERS as BEAR_CONFIG_REGISTERS
 from drivers.bear_registers import RATED_CURRENT_A
 from drivers.can_motor import MitRanges  # the MIT frame ranges: one type for the config and the driver
@@ -207,95 +204,6 @@ class RobotConfig:
 
 
 # -- valid ranges ------------------------------------------------------------------------------------------------
-@dataclass(frozen=True, slots=True)
-class Bound:
-    """The valid range of one numeric setting, its unit and the physical reason. Both ends are finite, so a value
-    inside is finite too."""
-
-    low: float
-    high: float
-    unit: str = ""
-    why: str = ""
-    low_open: bool = False
-    high_open: bool = False
-    integer: bool = False
-    step: float = 0.0  # > 0: only low + k * step
-
-    def contains(self, value: float) -> bool:
-        # Comparisons only: NaN fails every one, and a huge YAML integer is compared exactly (no float overflow).
-        if not (value > self.low if self.low_open else value >= self.low):
-            return False
-        if not (value < self.high if self.high_open else value <= self.high):
-            return False
-        return not self.step or abs((value - self.low) / self.step - round((value - self.low) / self.step)) < 1e-6
-
-    def interval(self, unit: bool = False) -> str:
-        """The range, e.g. "(0, 10.5]" ("(0, 10.5] N·m" with `unit`); a two-value step reads "1 or -1"."""
-        low, high = (f"{int(x)}" if self.integer else f"{x:g}" for x in (self.low, self.high))
-        if self.step and self.high - self.low == self.step:
-            return f"{high} or {low}"
-        text = f"{'(' if self.low_open else '['}{low}, {high}{')' if self.high_open else ']'}"
-        text += f" {self.unit}" if unit and self.unit else ""
-        return text + (f" in steps of {self.step:g}" if self.step else "")
-
-    def expected(self) -> str:
-        """What an error says was expected, e.g. "a number in [0.2, 0.5] N·m/A (Koala BEAR rating)"."""
-        text = self.interval(unit=True)
-        if not (self.step and self.high - self.low == self.step):
-            text = f"{'an integer' if self.integer else 'a number'} in {text}"
-        return text + (f" ({self.why})" if self.why else "")
-
-    def narrowed(self, why: str, low: float = -math.inf, high: float = math.inf, high_open: bool = False) -> Bound:
-        """This range cut by a relation to another setting (`why` names it); the static ends still hold."""
-        if low <= self.low and high >= self.high:
-            return self
-        return replace(self, why=why, low=max(self.low, low), high=min(self.high, high),
-                       low_open=self.low_open and low <= self.low,
-                       high_open=self.high_open if high >= self.high else high_open)
-
-
-def _shown(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
-
-
-def checked_number(source: Any, key: str, value: Any, bound: Bound, error: type[ValueError] = ConfigError,
-                   also: str = "") -> Any:
-    """`value` if it is a number (an int for integer bounds; never a YAML boolean) inside `bound`, as a float (int);
-    otherwise one-line `error` "{source}: {key}: expected ..., got ...". `also` adds other accepted forms."""
-    kind = int if bound.integer else int | float
-    if isinstance(value, bool) or not isinstance(value, kind) or not bound.contains(value):
-        hint = ""
-        if isinstance(value, str):
-            try:
-                hint = " (YAML reads 1e-3 as text: write 1.0e-3)" if math.isfinite(float(value)) else ""
-            except ValueError:
-                pass
-        raise error(f"{source}: {key}: expected {bound.expected()}{also}, got {_shown(value)}{hint}")
-    return value if bound.integer else float(value)
-
-
-def read_yaml(path: Path, error: type[ValueError] = ConfigError, what: str = "file") -> Any:
-    """The YAML tree of a text file; one-line `error` naming the file when it cannot be read, is not UTF-8 text or
-    is not YAML."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as exc:
-        raise error(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
-    except OSError as exc:
-        raise error(f"{path}: cannot read the {what}: {exc.strerror or exc}") from None
-    try:
-        return yaml.safe_load(text)
-    except (yaml.YAMLError, ValueError) as exc:  # ValueError: an integer too long to convert
-        raise error(f"{path}: not valid YAML: {_yaml_problem(exc)}") from None
-
-
-def _yaml_problem(exc: Exception) -> str:
-    mark = getattr(exc, "problem_mark", None)
-    where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
-    return " ".join(f"{getattr(exc, 'problem', None) or exc}{where}".split())
-
-
 BEAR_RATED_TORQUE = 10.5  # N·m, Koala BEAR: 30 A x 0.35 N·m/A (BRUCE-OP)
 _TURN = 2 * math.pi
 _MIT_RANGES = {  # each end of a MIT frame field's span; wider spans leave the 12/16-bit fields too coarse
@@ -376,104 +284,7 @@ BOUNDS: dict[str, Bound] = {
 }
 
 
-def _key_pattern(pattern: str) -> re.Pattern:
-    return re.compile(re.escape(pattern).replace(r"\[\*\]", r"\[\d+\]").replace(r"\*", r"[^.\[\]]+"))
-
-
-_PATTERNS = [(_key_pattern(pattern), bound) for pattern, bound in BOUNDS.items()]
-
-
-@functools.lru_cache(maxsize=4096)
-def bound_for(key: str) -> Bound:
-    """The `BOUNDS` entry of a concrete dotted key, e.g. "joints.velocity_limits.r_knee"."""
-    for pattern, bound in _PATTERNS:
-        if pattern.fullmatch(key):
-            return bound
-    raise LookupError(f"no BOUNDS entry for {key}")
-
-
-_LOOK_UP = object()  # "read the value at the key", distinct from a YAML null
-
-
-class _Reader:
-    """Typed access to a parsed YAML tree; every failure names the file and the dotted key."""
-
-    def __init__(self, path: Path, data: Any):
-        self.path = path
-        self.data = data
-
-    def fail(self, key: str, expected: str, got: Any = None, *, show_got: bool = True) -> ConfigError:
-        tail = f", got {_shown(got)}" if show_got else ""
-        return ConfigError(f"{self.path}: {key}: expected {expected}{tail}")
-
-    def node(self, key: str) -> Any:
-        node = self.data
-        walked = []
-        for part in key.split("."):
-            if not isinstance(node, dict):
-                raise self.fail(".".join(walked), "a mapping", node)
-            if part not in node:
-                raise ConfigError(f"{self.path}: {key}: missing key (expected under '{'.'.join(walked) or '<top>'}')")
-            node = node[part]
-            walked.append(part)
-        return node
-
-    def mapping(self, key: str, allowed: set[str] | None = None) -> dict:
-        node = self.node(key)
-        if not isinstance(node, dict):
-            raise self.fail(key, "a mapping", node)
-        if allowed is not None:
-            unknown = sorted(set(node) - allowed)
-            if unknown:
-                raise ConfigError(f"{self.path}: {key}.{unknown[0]}: unknown key (expected one of {sorted(allowed)})")
-        return node
-
-    def number(self, key: str, value: Any = _LOOK_UP, bound: Bound | None = None, also: str = "") -> Any:
-        """The number at `key` (or `value`, already looked up) inside `bound`, by default its `BOUNDS` entry."""
-        value = self.node(key) if value is _LOOK_UP else value
-        return checked_number(self.path, key, value, bound or bound_for(key), also=also)
-
-    def string(self, key: str) -> str:
-        value = self.node(key)
-        if not isinstance(value, str) or not value:
-            raise self.fail(key, "a non-empty string", value)
-        return value
-
-    def names(self, key: str, length: int | None = None) -> tuple[str, ...]:
-        value = self.node(key)
-        if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
-            raise self.fail(key, "a list of names", value)
-        if length is not None and len(value) != length:
-            raise self.fail(key, f"a list of {length} names, got {len(value)}", show_got=False)
-        if len(set(value)) != len(value):
-            raise self.fail(key, "unique names", value)
-        return tuple(value)
-
-    def vector(self, key: str, length: int, value: Any = _LOOK_UP) -> np.ndarray:
-        """A list of `length` numbers at `key` (or `value`, already looked up, reported as `key`)."""
-        value = self.node(key) if value is _LOOK_UP else value
-        if not isinstance(value, list):
-            raise self.fail(key, f"a list of {length} numbers", value)
-        if len(value) != length:
-            raise self.fail(key, f"a list of {length} numbers, got {len(value)} entries", show_got=False)
-        return np.array([self.number(f"{key}[{i}]", v) for i, v in enumerate(value)], dtype=np.float64)
-
-    def per_joint(self, key: str, joints: tuple[str, ...], width: int = 1,
-                  bounds: list[Bound] | None = None) -> np.ndarray:
-        """A mapping joint name -> number (or [numbers] of `width`), returned in `joints` order; `bounds`: one per
-        joint, narrower than the `BOUNDS` entry."""
-        node = self.mapping(key)
-        unknown = [name for name in node if name not in joints]
-        if unknown:
-            raise ConfigError(f"{self.path}: {key}.{unknown[0]}: unknown joint (expected one of {list(joints)})")
-        missing = [name for name in joints if name not in node]
-        if missing:
-            raise ConfigError(f"{self.path}: {key}.{missing[0]}: missing joint (every joint of {list(joints)} "
-                              "needs a value)")
-        if width == 1:
-            return np.array([self.number(f"{key}.{name}", bound=bounds[i] if bounds else None)
-                             for i, name in enumerate(joints)])
-        return np.stack([self.vector(f"{key}.{name}", width) for name in joints])
+bound_for = bound_lookup(BOUNDS, "BOUNDS")  # the Bound of a concrete key, e.g. "joints.velocity_limits.r_knee"
 
 
 def find_mjcf(name: str | Path, beside: Path | None = None) -> Path | None:
@@ -495,7 +306,7 @@ def _resolve_mjcf(config_path: Path, name: str, key: str) -> Path:
     return path
 
 
-def _limits(r: _Reader, key: str, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+def _limits(r: YamlReader, key: str, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
     pairs = r.per_joint(key, names, width=2)
     for name, (lo, hi) in zip(names, pairs, strict=True):
         if not lo < hi:
@@ -509,12 +320,12 @@ def _inside(key: str, names: tuple[str, ...], lower: np.ndarray, upper: np.ndarr
             for name, lo, hi in zip(names, lower, upper, strict=True)]
 
 
-def _gains(r: _Reader, key: str, joints: tuple[str, ...]) -> PdGains:
+def _gains(r: YamlReader, key: str, joints: tuple[str, ...]) -> PdGains:
     r.mapping(key, {"kp", "kd"})
     return PdGains(kp=r.per_joint(f"{key}.kp", joints), kd=r.per_joint(f"{key}.kd", joints))
 
 
-def _coupling(r: _Reader, n: int) -> np.ndarray:
+def _coupling(r: YamlReader, n: int) -> np.ndarray:
     key = "coupling.joint_from_actuator"
     r.mapping("coupling", {"joint_from_actuator"})
     rows = r.node(key)
@@ -528,7 +339,7 @@ def _coupling(r: _Reader, n: int) -> np.ndarray:
     return matrix
 
 
-def _serial(r: _Reader, key: str, n_ids: int | None = None, watchdog_unit_s: float | None = None,
+def _serial(r: YamlReader, key: str, n_ids: int | None = None, watchdog_unit_s: float | None = None,
             min_watchdog_s: float = 0.0) -> SerialBus:
     """A serial bus; with `n_ids`, its device IDs and motor-side watchdog. `watchdog_unit_s`: the register's fixed
     unit (Dynamixel: `watchdog_s` optional, 0 when left out); None: a `watchdog_unit_s` key (BEAR: `watchdog_s`
@@ -568,7 +379,7 @@ def _serial(r: _Reader, key: str, n_ids: int | None = None, watchdog_unit_s: flo
 BEAR_GAIN_REGISTERS = tuple(name for name in BEAR_CONFIG_REGISTERS if "_gain_" in name)
 
 
-def _bear_gains(r: _Reader, key: str) -> tuple[tuple[str, float], ...]:
+def _bear_gains(r: YamlReader, key: str) -> tuple[tuple[str, float], ...]:
     """Every PID gain register of the BEARs (the driver's config table), by name: what start-up writes."""
     node = r.mapping(key, set(BEAR_GAIN_REGISTERS))
     missing = [name for name in BEAR_GAIN_REGISTERS if name not in node]
@@ -583,7 +394,7 @@ _CAN_MOTOR_KEYS = {"id", "channel", "gear", "sign", "offset", "ranges"}
 _CAN_RANGE_KEYS = ("p", "v", "kp", "kd", "t")
 
 
-def _can_ranges(r: _Reader, key: str) -> MitRanges:
+def _can_ranges(r: YamlReader, key: str) -> MitRanges:
     r.mapping(key, set(_CAN_RANGE_KEYS))
     pairs = {}
     for name in _CAN_RANGE_KEYS:
@@ -596,12 +407,12 @@ def _can_ranges(r: _Reader, key: str) -> MitRanges:
     return MitRanges(**pairs)
 
 
-def _can_motor(r: _Reader, key: str, slot: str, channel: str, default_ranges: MitRanges | None) -> CanMotor:
+def _can_motor(r: YamlReader, key: str, slot: str, channel: str, default_ranges: MitRanges | None) -> CanMotor:
     node = r.mapping(key, _CAN_MOTOR_KEYS)
     if "ranges" in node:
         ranges = _can_ranges(r, f"{key}.ranges")
     elif default_ranges is None:
-        raise ConfigError(f"{r.path}: {key}.ranges: missing key (and no buses.can.ranges default)")
+        raise ConfigError(f"{r.source}: {key}.ranges: missing key (and no buses.can.ranges default)")
     else:
         ranges = default_ranges
     return CanMotor(slot=slot, channel=str(node.get("channel", channel)), id=r.number(f"{key}.id"),
@@ -610,7 +421,7 @@ def _can_motor(r: _Reader, key: str, slot: str, channel: str, default_ranges: Mi
                     offset=r.number(f"{key}.offset") if "offset" in node else 0.0, ranges=ranges)
 
 
-def _can(r: _Reader, joints: tuple[str, ...]) -> CanBus:
+def _can(r: YamlReader, joints: tuple[str, ...]) -> CanBus:
     """buses.can: the interface and channel, and optionally the legs on MIT-mode CAN motors (`motors`)."""
     node = r.mapping("buses.can", _CAN_KEYS)
     channel = str(r.node("buses.can.channel"))
@@ -618,15 +429,8 @@ def _can(r: _Reader, joints: tuple[str, ...]) -> CanBus:
     motors: tuple[CanMotor, ...] = ()
     if "motors" in node:
         default_ranges = _can_ranges(r, "buses.can.ranges") if "ranges" in node else None
-        table = r.mapping("buses.can.motors")
-        unknown = [name for name in table if name not in joints]
-        if unknown:
-            raise ConfigError(f"{r.path}: buses.can.motors.{unknown[0]}: unknown joint (expected one of "
-                              f"{list(joints)})")
-        missing = [name for name in joints if name not in table]
-        if missing:
-            raise ConfigError(f"{r.path}: buses.can.motors.{missing[0]}: missing joint (every joint slot of "
-                              f"{list(joints)} needs a motor)")
+        r.check_keys("buses.can.motors", r.mapping("buses.can.motors"), joints, joints, what="joint",
+                     missing=f" (every joint slot of {list(joints)} needs a motor)")
         motors = tuple(_can_motor(r, f"buses.can.motors.{name}", name, channel, default_ranges) for name in joints)
         first = {}  # motor ID -> the slot that has it
         for m in motors:
@@ -648,7 +452,7 @@ def _can(r: _Reader, joints: tuple[str, ...]) -> CanBus:
     )
 
 
-def _actuators(r: _Reader, can: CanBus) -> tuple[float, float]:
+def _actuators(r: YamlReader, can: CanBus) -> tuple[float, float]:
     """actuators.torque_limit inside the rating of the leg bus's actuators, and torque_per_amp."""
     r.mapping("actuators", {"torque_limit", "torque_per_amp"})
     torque_per_amp = r.number("actuators.torque_per_amp")
@@ -668,10 +472,11 @@ def _actuators(r: _Reader, can: CanBus) -> tuple[float, float]:
 _TOP_KEYS = {"name", "mjcf", "rates", "joints", "gains", "actuators", "coupling", "arms", "safety", "policy", "pinn",
              "buses", "transfer"}
 
-_SAFETY_FIELDS = tuple(f.name for f in fields(SafetyConfig))
+# The safety section's keys are its BOUNDS entries, each a SafetyConfig field of the same name.
+_SAFETY_FIELDS = tuple(key.removeprefix("safety.") for key in BOUNDS if key.startswith("safety."))
 
 
-def _safety(r: _Reader, joints: tuple[str, ...], q_lower: np.ndarray, q_upper: np.ndarray,
+def _safety(r: YamlReader, joints: tuple[str, ...], q_lower: np.ndarray, q_upper: np.ndarray,
             loop_hz: float) -> SafetyConfig:
     r.mapping("safety", set(_SAFETY_FIELDS))
     half = 0.5 * (q_upper - q_lower)
@@ -687,7 +492,7 @@ def _safety(r: _Reader, joints: tuple[str, ...], q_lower: np.ndarray, q_upper: n
     return SafetyConfig(**{name: r.number(f"safety.{name}", bound=narrowed.get(name)) for name in _SAFETY_FIELDS})
 
 
-def _model_file(r: _Reader, key: str) -> Path | None:
+def _model_file(r: YamlReader, key: str) -> Path | None:
     """An optional model path (None when null), resolved beside the config; existence is checked at load time
     by the runtime, which names the file."""
     value = r.node(key)
@@ -696,10 +501,10 @@ def _model_file(r: _Reader, key: str) -> Path | None:
     if not isinstance(value, str) or not value:
         raise r.fail(key, "a model file path or null", value)
     path = Path(value)
-    return path if path.is_absolute() else (r.path.parent / path)
+    return path if path.is_absolute() else (r.source.parent / path)
 
 
-def _gait_cadence(r: _Reader) -> tuple[tuple[float, float], ...]:
+def _gait_cadence(r: YamlReader) -> tuple[tuple[float, float], ...]:
     key = "policy.gait_period_s"
     value = r.node(key)
     if not isinstance(value, list):
@@ -716,7 +521,7 @@ def _gait_cadence(r: _Reader) -> tuple[tuple[float, float], ...]:
     return tuple(points)
 
 
-def _models(r: _Reader, joints: tuple[str, ...]) -> ModelsConfig:
+def _models(r: YamlReader, joints: tuple[str, ...]) -> ModelsConfig:
     r.mapping("policy", {"model", "gait_period_s"})
     pinn = r.mapping("pinn", {"model", "lookahead_ticks", "residual_bias"})
     return ModelsConfig(policy=_model_file(r, "policy.model"),
@@ -727,27 +532,26 @@ def _models(r: _Reader, joints: tuple[str, ...]) -> ModelsConfig:
                         else None)
 
 
-def _choice(r: _Reader, key: str, choices: tuple[str, ...]) -> str:
-    value = r.node(key)
-    if value not in choices:
-        raise r.fail(key, f"one of {', '.join(choices)}", value)
-    return value
+# The transfer section's numbers are its BOUNDS entries: "transfer.NAME" is TransferConfig.NAME and
+# "transfer.SECTION.NAME" TransferConfig.SECTION_NAME.
+_TRANSFER_KEYS = tuple(key.removeprefix("transfer.") for key in BOUNDS if key.startswith("transfer."))
+_TRANSFER_SECTIONS = {section: tuple(key.split(".")[1] for key in _TRANSFER_KEYS if key.startswith(f"{section}."))
+                      for section in dict.fromkeys(key.split(".")[0] for key in _TRANSFER_KEYS if "." in key)}
 
 
-def _transfer(r: _Reader, loop_hz: int) -> TransferConfig:
+def _transfer(r: YamlReader, loop_hz: int) -> TransferConfig:
     """The optional `transfer` section; every key in it is optional (TransferConfig's defaults)."""
     if "transfer" not in r.data:
         return TransferConfig()
-    node = r.mapping("transfer", {"scheme", "reference_model", "delay_margin_s", "phase_margin_deg", "shadow",
-                                  "observer", "twin", "gap_monitor"})
+    node = r.mapping("transfer", {"scheme", "reference_model", *(key.split(".")[0] for key in _TRANSFER_KEYS)})
     default = TransferConfig()
     values = {}
     if "scheme" in node:
-        values["scheme"] = _choice(r, "transfer.scheme", TRANSFER_SCHEMES)
+        values["scheme"] = r.choice("transfer.scheme", TRANSFER_SCHEMES)
     if "reference_model" in node:
-        values["reference_model"] = _choice(r, "transfer.reference_model", REFERENCE_MODELS)
-    for name in ("delay_margin_s", "phase_margin_deg"):
-        if name in node:
+        values["reference_model"] = r.choice("transfer.reference_model", REFERENCE_MODELS)
+    for name in _TRANSFER_KEYS:
+        if "." not in name and name in node:
             values[name] = r.number(f"transfer.{name}")
     delay = values.get("delay_margin_s", default.delay_margin_s)
     phase = math.radians(values.get("phase_margin_deg", default.phase_margin_deg))
@@ -758,9 +562,7 @@ def _transfer(r: _Reader, loop_hz: int) -> TransferConfig:
         "gap_monitor.window_s": bound_for("transfer.gap_monitor.window_s").narrowed(
             "at least 5 ticks of rates.loop_hz", low=5.0 / loop_hz),
     }
-    for section, names in (("shadow", ("resync_ticks",)), ("observer", ("time_constant_s", "clip")),
-                           ("twin", ("resync_s", "time_constant_s", "clip", "disturbance_rad")),
-                           ("gap_monitor", ("window_s", "warn_rms"))):
+    for section, names in _TRANSFER_SECTIONS.items():
         if section not in node:
             continue
         sub = r.mapping(f"transfer.{section}", set(names))
@@ -775,12 +577,8 @@ def _transfer(r: _Reader, loop_hz: int) -> TransferConfig:
 
 
 def parse_config(data: Any, path: Path) -> RobotConfig:
-    r = _Reader(path, data)
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: <top>: expected a mapping of sections {sorted(_TOP_KEYS)}, got {_shown(data)}")
-    unknown = sorted(set(data) - _TOP_KEYS)
-    if unknown:
-        raise ConfigError(f"{path}: {unknown[0]}: unknown key (expected one of {sorted(_TOP_KEYS)})")
+    r = YamlReader(path, data, ConfigError, bounds=bound_for)
+    r.mapping("", _TOP_KEYS)
 
     r.mapping("rates", {"loop_hz", "policy_hz"})
     loop_hz, policy_hz = r.number("rates.loop_hz"), r.number("rates.policy_hz")
@@ -856,32 +654,6 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
     )
 
 
-def apply_overrides(data: dict, overrides: list[str], path: Path) -> dict:
-    """Apply `KEY=VALUE` overrides (dotted key paths, VALUE parsed as YAML) to a copy of the raw tree.
-
-    Only existing keys can be set, so a typo fails instead of being ignored.
-    """
-    data = copy.deepcopy(data)
-    for item in overrides:
-        key, sep, text = item.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"{path}: --set {item!r}: expected KEY=VALUE with a dotted key path")
-        parts = key.split(".")
-        node = data
-        for depth, part in enumerate(parts):
-            if not isinstance(node, dict) or part not in node:
-                parent = ".".join(parts[:depth]) or "<top>"
-                raise ConfigError(f"{path}: {key}: no such key to --set (nothing named {part!r} under {parent})")
-            if depth == len(parts) - 1:
-                try:
-                    node[part] = yaml.safe_load(text) if text else ""
-                except (yaml.YAMLError, ValueError) as exc:
-                    raise ConfigError(f"{path}: --set {key}: not a valid YAML value: {_yaml_problem(exc)}") from None
-            else:
-                node = node[part]
-    return data
-
-
 def resolve_config_path(path: str | Path = DEFAULT_CONFIG) -> Path:
     """A config path as given; a relative `configs/robots/NAME.yaml` missing from the working directory falls
     back to the copy installed with the package, so the default works from any directory."""
@@ -899,7 +671,7 @@ def resolve_config_path(path: str | Path = DEFAULT_CONFIG) -> Path:
 
 def load_config(path: str | Path = DEFAULT_CONFIG, overrides: list[str] | None = None) -> RobotConfig:
     resolved = resolve_config_path(path)
-    data = read_yaml(resolved, what="robot config")
+    data = read_yaml(resolved, ConfigError, what="robot config")
     if overrides:
-        data = apply_overrides(data, overrides, resolved)
+        data = apply_overrides(data, overrides, resolved, ConfigError)
     return parse_config(data, resolved)

@@ -11,9 +11,7 @@ import numpy as np
 
 from bruce_hw.backend import Backend
 from bruce_hw.config import RobotConfig
-from bruce_hw.types import FootContacts, ImuSample, JointCommand, JointState, RobotState
-
-GRAVITY = 9.81
+from bruce_hw.types import GRAVITY, FootContacts, ImuSample, JointCommand, JointState, RobotState
 
 
 class EchoBackend(Backend):

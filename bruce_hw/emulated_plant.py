@@ -1,37 +1,12 @@
 """Physics behind the emulators: BRUCE's MuJoCo model (the mock backend's, `bruce_hw.mock.MujocoBackend`) stepped
 at 1 kHz in real time on a thread, so that the hw backend talks to emulated devices that move like the robot.
 
-Each physics step (`Plant.step`):
-1. what the leg actuators were told, read from the BEAR emulator (mode, torque_enable, goals) or the CAN motor
-   emulators (their MIT-mode torque), becomes actuator torques, then joint torques through the coupling
-   (tau_q = B^-T tau_m); the mock saturates them per actuator and steps the model by one loop period;
-2. the measured state goes back: actuator positions and velocities (m = B^-1 q) and current (iq = tau_m / kt, from
-   the torque the model applied) to the BEARs or the CAN motors, IMU specific force, gyro and the four contact
-   switches to the sense board, and every 20th step the arm joints to the Dynamixel emulator.
-
-Choices (the emulators leave these to the adapter):
-- BEAR torque per mode, while torque_enable reads 1: torque (0) kt * clip(goal_iq, +-limit_i_max); force (3)
-  p_gain_force (goal_position - m) + d_gain_force (goal_velocity - md) + kt goal_iq, clipped to kt limit_i_max,
-  with the gains taken as Nm/rad and Nm s/rad; position (2) the same PD with the position gains; velocity (1)
-  p_gain_velocity (goal_velocity - md). Damping (torque_enable 3): -safety.damping_kd md per actuator. Off (0) or
-  error (2): no torque. Config registers are re-read every 100 steps.
-- The operator: until a leg actuator is first enabled the robot is held still at the standing pose, feet on the
-  floor (physics paused, the IMU reads +g, every contact switch closed), as on the stand or in the hands before
-  start-up; once every leg actuator reads disabled again (the next start-up disables them) it is put back there
-  and held. In damping the physics runs: the robot sinks as it would.
-- Arms are locked in the model (as in the paper); the Dynamixel emulator (track_goals=False) sees each servo with
-  torque on follow its goal with a first-order lag of `arm_time_constant_s`, starting from the zero pose.
-- Real time: steps are paced on time.monotonic(); after a stall of more than 10 steps the lost time is dropped
-  (counted in `skipped_steps`), never run in a burst.
-- Every step reads the BEARs' commands (`BearBusEmulator.commands`), held or not, enabled, off or damping: that
-  call is also what runs the BEAR watchdogs between packets, so an expiry is detected (and logged) within a step
-  even when the host has gone silent.
-
-`EmulatedRobot` starts the emulators a config describes (BEAR or CAN legs, Dynamixel arms, sense board) with a
-plant driving them; `bruce-emulate` (runtime/emulate_cli.py) is its command line. `EmulatedRobot.unplug(bus)`
-cuts a bus's wire, `EmulatedRobot.set_reply_delay(bus, fixed, jitter)` makes a bus answer late, and
-`EmulatedRobot.drain_events()` merges every emulator's event log (those that have one) with its own (unplug / plug
-and reply delays of the Dynamixel bus and the sense board), in time order.
+`Plant.step`: what the leg actuators were told (BEAR or CAN motor emulators) becomes joint torques through the
+coupling, the model steps one loop period, and the measured state goes back to the leg emulators, the sense board
+and, every 20th step, the Dynamixel emulator. `EmulatedRobot` starts the emulators a config describes with a plant
+driving them (`bruce-emulate`, runtime/emulate_cli.py, is its command line); `unplug(bus)`, `set_reply_delay(bus,
+fixed, jitter)` and `drain_events()` (every emulator's event log and its own, in time order) serve the tests. The
+choices the emulators leave to the adapter are noted at the code that makes them.
 """
 
 from __future__ import annotations
@@ -47,11 +22,11 @@ from bruce_hw.config import RobotConfig
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.types import GroundTruth, JointCommand
 from drivers.emulators.bear import EventLog
+from drivers.sense import FIRMWARE_GRAVITY
 
-GRAVITY = 9.80665
-REGISTER_REFRESH_STEPS = 100
+REGISTER_REFRESH_STEPS = 100  # the BEARs' config registers (gains, current limit) are re-read this often
 ARM_EVERY_STEPS = 20          # the arm bus runs at 50 Hz
-MAX_CATCH_UP_STEPS = 10
+MAX_CATCH_UP_STEPS = 10       # after a longer stall the lost time is dropped (`skipped_steps`), never run in a burst
 BEAR_GAIN_REGISTERS = ("limit_i_max", "p_gain_force", "d_gain_force", "p_gain_position", "d_gain_position",
                        "p_gain_velocity")
 
@@ -142,6 +117,10 @@ class Plant:
             next_step += self.dt
 
     # -- the operator ------------------------------------------------------------------------------------------
+    # Until a leg actuator is first enabled the robot is held still at the standing pose, feet on the floor (physics
+    # paused, the IMU reads +g, every contact switch closed), as on the stand or in the hands before start-up; once
+    # every leg actuator reads disabled again (the next start-up disables them) it is put back there and held. In
+    # damping the physics runs: the robot sinks as it would.
     def place(self) -> None:
         """Put the robot back at the standing pose and hold it there until a leg actuator is enabled."""
         with self._lock:
@@ -152,7 +131,7 @@ class Plant:
         self.held = True
         self._publish_legs(self.config.standing_pose, np.zeros(self.n), np.zeros(self.n))
         if self.sense is not None:
-            self.sense.set_measurement(accel=(0.0, 0.0, GRAVITY), gyro=(0.0, 0.0, 0.0), contacts=(True,) * 4)
+            self.sense.set_measurement(accel=(0.0, 0.0, FIRMWARE_GRAVITY), gyro=(0.0, 0.0, 0.0), contacts=(True,) * 4)
 
     def ground_truth(self) -> GroundTruth:
         with self._lock:
@@ -187,7 +166,14 @@ class Plant:
             self.steps += 1
 
     def _actuator_torques(self) -> tuple[np.ndarray, bool, bool]:
-        """Actuator torques (coupling column order), whether any leg actuator is enabled, whether all are off."""
+        """Actuator torques (coupling column order), whether any leg actuator is enabled, whether all are off.
+
+        BEAR torque per mode while torque_enable reads 1, gains taken as Nm/rad and Nm s/rad: torque (0)
+        kt goal_iq; force (3) p_gain_force (goal_position - m) + d_gain_force (goal_velocity - md) + kt goal_iq;
+        position (2) p_gain_position (goal_position - m) - d_gain_position md; velocity (1) p_gain_velocity
+        (goal_velocity - md); clipped to kt limit_i_max. Damping (3): -safety.damping_kd md; off (0) or error (2):
+        none. Reading the commands every step, held or not, also runs the BEAR watchdogs between packets, so an
+        expiry is detected within a step even when the host has gone silent."""
         if self.can:
             return self._can_torques()
         if self.bear is None:
@@ -253,6 +239,8 @@ class Plant:
 
     # -- arms --------------------------------------------------------------------------------------------------
     def _step_arms(self, dt: float) -> None:
+        """The arms are locked in the model (as in the paper): a servo with torque on follows its goal with a
+        first-order lag of `arm_time_constant_s`, from the zero pose."""
         goal = self.dynamixel.goal_joint_positions()
         on = self.dynamixel.torque_enabled_all()
         share = 1.0 - math.exp(-dt / self.arm_time_constant_s)

@@ -1,60 +1,12 @@
 """The `hw` backend: BRUCE's real buses, composed from the drivers in `drivers/` by the robot config.
 
-Legs: ten Koala BEARs on RS-485 (`buses.bear`), or MIT-mode CAN motors when `buses.can.motors` is set; arms: six
-Dynamixels (`buses.dynamixel`) held at `arms.hold_pose`; IMU and foot contacts: the sense board (`buses.sense`).
-Joint <-> actuator through `coupling` (q = B m, qd = B md, tau_q = B^-T tau_m, tau_m = B^T tau_q), BEAR current
-iq = tau_m / `actuators.torque_per_amp`.
-
-Start-up (`configure`, as BRUCE-OP v0.0.7's `Play/bootup.sh` starts the robot): open and ping every device of every
-bus, retrying the missing ones (`ping_rounds` at `ping_retry_s`, BRUCE: about 7 at 0.5 s) and failing with one
-message that names every missing
-device; BEARs: torque disabled (this leaves a previous run's damping), errors cleared a bounded number of times
-(an E-stop bit is refused with "release the E-stop"), then mode, current limit, position limits and the PID
-gains written with torque disabled and read back. Homing offsets are per-robot calibration kept in the BEARs'
-flash (as BRUCE-OP treats them): read, never written. Arms: set up with torque off; sense board: stream on and the
-official IMU check. `activate` enables the legs (and checks they took it) and ramps the arms to their hold pose.
-
-One tick: the runtime calls read() then write() (runtime/run.py). While active, the legs' bulk cycles run on a thread
-of their own (`bruce_hw.bus_thread`, as BRUCE-OP's bear thread): write() hands it the goal currents and starts a
-cycle, which writes them and reads present position, velocity and current; read() takes the newest complete reading
-and never waits for the bus, so a slow or jittery bus makes the data older (the data-age check judges it), not the
-tick longer. Inactive and in damping, read() runs a read-only cycle itself. Once the loop has SCHED_FIFO, the
-runtime puts every other thread of the process one real-time priority step above it on its CPU
-(`bruce_hw.io_priority`).
-BEAR mode: torque (mode 0, goal_iq): the runtime sends joint torques (JointCommand.tau_ff); a command that carries
-PD terms is evaluated here on this tick's measured state (JointCommand.torque), because a joint-space PD through
-the differential hip is not a per-motor PD, so BEAR force mode could not carry it exactly. Every 100th cycle one
-BEAR's temperatures and voltage are read as well (each BEAR once a second, as BRUCE's bear thread does).
-The sense board and the arms (50 Hz) run on their own threads, so the 1 kHz tick never waits for them.
-ImuSample.orientation: the board measures none, so the backend fills it from an attitude filter
-(`bruce_hw.attitude.MahonyAttitude`, gyro + gravity direction): the runtime's tilt check and standing controller use
-the orientation when there is one and the raw accelerometer's direction otherwise, which the motors' reaction forces
-swing by tens of degrees.
-
-Lost replies: a BEAR reply lost or corrupted within a cycle is not a fault. The bus thread's cycle never retries
-(the next cycle asks again a millisecond later); the actuator keeps its last sample, whose stamp ages
-(JointState.stamp is the oldest actuator's). Lost replies are counted per ID (`link_report`, the run's stats).
-
-Fault paths (each lands in damping, `_on_fault`: BEAR torque_enable = 3 on every reachable actuator, CAN motors a
-damping-only command, the arms keep holding):
-- a BEAR whose newest sample is older than `safety.max_sensor_age_s` (silence), a BEAR that lost more than
-  `safety.reply_loss_max` of its replies over `safety.reply_loss_window_s`, a silent CAN motor, a fault bit in a
-  BEAR's error byte, an arm bus with no good cycle for 0.3 s or a servo error: the backend goes to damping at once
-  and read() raises BackendError naming the bus, the IDs and the figure; the runtime ends the session with that
-  message (a reading without the legs' data cannot go on to the controller);
-- the E-stop (BEAR error bit 3): damping at once, and the reading says `estop`, which trips the safety stage;
-- a stopped IMU stream: damping once its newest sample is older than `safety.max_sensor_age_s` (after waiting up
-  to IMU_WAIT_S for a newer one), naming the port; the reading keeps the old stamp, so the safety stage's
-  sensor-age check trips in the same tick. Each self-inflicted fault while active is either raised or makes the
-  safety stage trip on the same reading: a loop that went on would have its next write() refused.
-Motor-side watchdogs: a killed process or an unplugged bus cannot send damping, so the motors must stop by
-themselves. Start-up writes the BEARs' `watchdog_timeout` (`buses.bear.watchdog_s` in counts of
-`buses.bear.watchdog_unit_s`; in torque mode, enabled, a BEAR that hears nothing for that long enters damping) with
-torque disabled and reads it back, and the arm driver sets the Dynamixels' Bus Watchdog (`buses.dynamixel.watchdog_s`).
-BRUCE-OP sets neither.
-Shutdown (every exit path through Backend.shutdown, and at interpreter exit if nobody called it): damping, the BEARs'
-watchdog cleared (torque disabled for the write, then damping again), then the ports are closed; arms torque off
-(watchdog cleared) and the sense board to idle, as BRUCE-OP's threads do on exit.
+Legs: ten Koala BEARs on RS-485 (`buses.bear`, `bruce_hw.bear_legs`), or MIT-mode CAN motors when
+`buses.can.motors` is set (`bruce_hw.can_legs`); arms: six Dynamixels held at `arms.hold_pose`
+(`bruce_hw.arm_holder`); IMU and foot contacts: the sense board (`buses.sense`). Joint <-> actuator through
+`coupling` (q = B m, qd = B md, tau_q = B^-T tau_m, tau_m = B^T tau_q). `make_hw_backend(config)` refuses to start
+with one line per missing module or device. While active, the legs' bulk cycles run on a thread of their own
+(`bruce_hw.bus_thread`), as do the sense board's reader and the arms (50 Hz), so the 1 kHz tick never waits for a
+bus (docs/timing.md). What ends in damping, the motors' own watchdogs and shutdown: docs/safety.md.
 """
 
 from __future__ import annotations
@@ -78,6 +30,7 @@ from bruce_hw.can_legs import CanLegs
 from bruce_hw.config import RobotConfig
 from bruce_hw.leg_bus import LegBus, LegReading
 from bruce_hw.types import FootContacts, ImuSample, JointCommand, JointState, RobotState
+from drivers.sense import FIRMWARE_GRAVITY
 
 log = logging.getLogger("bruce_hw.hw")
 
@@ -90,7 +43,6 @@ REQUIRED_MODULES = {
     "dynamixel_sdk": "the arm bus (package dynamixel-sdk)",
 }
 CAN_MODULES = {"drivers.can_motor": "CAN leg motors (buses.can)", "can": "the CAN legs (package python-can)"}
-STANDARD_GRAVITY = 9.80665    # m/s^2: the sense board reports specific force scaled by it (drivers/sense.py)
 # The I/O threads (sense reader, arms, the emulators in a test) must get the GIL within a fraction of
 # safety.max_sensor_age_s; CPython's default switch interval (5 ms) lets a busy thread hold them off that long.
 GIL_SWITCH_INTERVAL_S = 0.0005
@@ -160,13 +112,20 @@ class HwBackend(Backend):
         self._last: RobotState | None = None
         self._temperature: np.ndarray | None = None
         self._temperature_count = -1
-        self._attitude = MahonyAttitude(STANDARD_GRAVITY)
+        # The board measures no orientation: this filter fills ImuSample.orientation, which the tilt check and the
+        # standing controller use (the raw accelerometer's direction swings by tens of degrees with the motors'
+        # reaction forces).
+        self._attitude = MahonyAttitude(FIRMWARE_GRAVITY)
         self._saved_switch_interval: float | None = None
         self._bus: BusThread | None = None    # the legs' cycles while active (bruce_hw.bus_thread)
         self.bus_cycle_us: dict | None = None  # its cycle-time percentiles, once it has ended
 
     # -- lifecycle -------------------------------------------------------------------------------------------
     def _on_configure(self) -> None:
+        """Start-up, as BRUCE-OP v0.0.7's `Play/bootup.sh` starts the robot: open and ping every device of every bus,
+        retrying the missing ones (`ping_rounds` at `ping_retry_s`), and fail with one message naming every missing
+        device; the legs set up with torque disabled and read back (`LegBus.configure`); the arms with torque off;
+        the sense board streaming after the official IMU check."""
         if self.switch_interval_s is not None:
             self._saved_switch_interval = sys.getswitchinterval()
             sys.setswitchinterval(self.switch_interval_s)
@@ -185,7 +144,7 @@ class HwBackend(Backend):
             self._restore_switch_interval()
             raise BackendError("hw backend: start-up failed:\n  - " + "\n  - ".join(problems))
         # Levels itself on the first sample (the robot is still after the IMU check).
-        self._attitude = MahonyAttitude(STANDARD_GRAVITY)
+        self._attitude = MahonyAttitude(FIRMWARE_GRAVITY)
         self.arms.start()  # before the loop asks for real-time scheduling: threads inherit the caller's
         self._bus = self._new_bus_thread()  # created now, cycling from activate() on
         atexit.register(self.shutdown)  # an interpreter exit that skipped shutdown() still ends in damping
@@ -278,6 +237,8 @@ class HwBackend(Backend):
         self.legs.disable()  # BEAR: torque_enable 0 also clears latched errors
 
     def _on_shutdown(self) -> None:
+        """Every exit path, and interpreter exit if nobody called shutdown(): damping, the legs' watchdog cleared
+        (then damping again), ports closed; the arms torque off (watchdog cleared), the sense board to idle."""
         atexit.unregister(self.shutdown)
         try:
             self._stop_bus()
@@ -335,6 +296,11 @@ class HwBackend(Backend):
         return BackendError(f"hw backend: {cause}")
 
     def _read(self) -> RobotState:
+        """The newest legs reading (active: the bus thread's; inactive or damping: a cycle of our own), the arms'
+        state and the newest sense sample. A lost reply is not a fault: the actuator keeps its last sample, whose
+        stamp ages (JointState.stamp is the oldest actuator's). A silent or lossy actuator, a fault flag, an arm bus
+        error or a stopped IMU stream goes to damping and raises BackendError naming the bus, the IDs and the figure;
+        an E-stop (BEAR error bit 3) goes to damping and the reading says `estop`."""
         from drivers.errors import BusTimeout, DriverError
 
         state = self._state
@@ -408,6 +374,9 @@ class HwBackend(Backend):
         return self._temperature.copy()
 
     def _write(self, command: JointCommand) -> None:
+        """Joint torques to the actuators (BEAR torque mode, goal_iq). A command with PD terms is evaluated here on
+        this tick's measured state: a joint-space PD through the differential hip is not a per-motor PD, so the
+        BEARs' own force mode could not carry it exactly."""
         tau = command.tau_ff
         if (command.kp is not None or command.kd is not None) and self._last is not None:
             last = self._last.joints

@@ -1,4 +1,26 @@
-"""`bruce-hw-check`: ping every device the robot config names and report what answers, what is missing, the error
+"""`bruce-hw-check` (`main`): ping every device the robot config names and report what answers, what is missing,
+the error flags, temperatures and voltages, then each bus's round trip and whether it can hold the 1 kHz loop
+(`check`); read-only but for the sense board's stream mode. `--probe-watchdog` (`run_watchdog_probe`) measures the
+unit of the BEAR watchdog_timeout register, and writes. Exit codes, verdicts and the probe's method, as --help prints
+them: `DESCRIPTION`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from bruce_hw.bus_startup import ids_text
+from bruce_hw.config import DEFAULT_CONFIG, ConfigError, RobotConfig, load_config
+
+PROG = "bruce-hw-check"
+DESCRIPTION = """\
+`bruce-hw-check`: ping every device the robot config names and report what answers, what is missing, the error
 flags, temperatures and voltages. Nothing is enabled or written except reads (and the sense board's stream mode,
 which it leaves idle again).
 
@@ -39,28 +61,13 @@ watchdog ran out within W (any packet resets the watchdog, so it cannot be watch
 disabled and watchdog_timeout and mode are written back as they were (flash is never written). It prints the unit
 and the `--set buses.bear.watchdog_unit_s=...` to use; exit status 0 when measured, 1 when the BEAR is silent, in
 E-stop or fault, never trips (within 4 s), or the counts disagree, 2 for a bad config or a config without BEARs.
-"""
-
-from __future__ import annotations
-
-import argparse
-import math
-import sys
-import time
-from dataclasses import dataclass, field
-
-import numpy as np
-
-from bruce_hw.bus_startup import ids_text
-from bruce_hw.config import DEFAULT_CONFIG, ConfigError, RobotConfig, load_config
-
-PROG = "bruce-hw-check"
+"""  # the --help text
 BEAR_REGISTERS = ("torque_enable", "winding_temperature", "powerstage_temperature", "ic_temperature",
                   "input_voltage")
 DXL_HARDWARE_ERROR, DXL_INPUT_VOLTAGE, DXL_TEMPERATURE = 70, 144, 146  # X-series control table
 TEMPERATURE_WARN_C = 75.0  # BRUCE-OP v0.0.7's warnings (top-level display)
 VOLTAGE_WARN_V = 14.5
-# -- round trips (module docstring)
+# -- round trips (DESCRIPTION)
 RTT_CYCLES = 300
 TICK_S = 0.001
 COMPUTE_S = 0.0002            # a tick's own work besides the bus
@@ -281,7 +288,7 @@ def check_can(config: RobotConfig) -> BusReport:
     return report
 
 
-# -- round trips (module docstring) ----------------------------------------------------------------------------------
+# -- round trips (DESCRIPTION) ----------------------------------------------------------------------------------
 @dataclass
 class RoundTrips:
     """Timed exchanges of one bus: seconds each (those that completed), and how many lost a reply."""
@@ -312,7 +319,7 @@ class RoundTrips:
 
 
 def verdict_1khz(trips: RoundTrips) -> tuple[str, bool]:
-    """(a phrase for people, whether the bus holds 1 kHz without help), by the module docstring's criterion."""
+    """(a phrase for people, whether the bus holds 1 kHz without help), by DESCRIPTION's criterion."""
     if not trips.seconds:
         return "cannot hold 1 kHz: no exchange completed", False
     if trips.p99 <= HOLDS_P99_S:
@@ -675,13 +682,14 @@ def run_watchdog_probe(config: RobotConfig, device_id: int | None, counts) -> in
 
 
 def check(config: RobotConfig, rtt_cycles: int = 0) -> list[BusReport]:
-    """Every bus's report; `rtt_cycles` > 0 adds the round trips (module docstring)."""
+    """Every bus's report; `rtt_cycles` > 0 adds the round trips (DESCRIPTION)."""
     reports = [check_can(config)] if config.buses.can.motors else [check_bear(config, rtt_cycles)]
     return [*reports, check_dynamixel(config, rtt_cycles), check_sense(config, polls=rtt_cycles)]
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", default=DEFAULT_CONFIG, help="robot config YAML (default: %(default)s)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value by dotted key path, e.g. buses.bear.port=/dev/ttyUSB3 (repeatable)")

@@ -1,17 +1,13 @@
 """The process's other Python threads (the hw backend's bus thread, sense-board reader and arms, the log relay)
-scheduled one real-time step above the loop, on its CPU.
+scheduled one real-time step above the loop, on its CPU (docs/timing.md, "Scheduling").
 
-Once runtime.realtime has given the loop thread SCHED_FIFO on one CPU, a thread left at SCHED_OTHER can be starved:
-on another CPU by a real-time process there (the emulators under `bruce-emulate --realtime`) or by any busy process
-(the scheduler's time slices are milliseconds), on the loop's CPU by the loop's spin before each deadline. A starved
-thread that holds the GIL stalls the loop too (priority inversion): measured against `bruce-emulate` with another
-process busy on the other CPU, the loop stalled for 35 ms and a bulk cycle for 13 ms with no reply lost. So every
-Python thread is put on the loop's CPU(s) one FIFO priority step above it: an I/O thread preempts the loop when its
-data arrives, does its few tens of microseconds of parsing and blocks again; the loop's spin yields the GIL on every
-turn (runtime.pacing). Threads without the GIL (onnxruntime's pool, the telemetry child process) are not touched. A
-loop without SCHED_FIFO leaves them as they are.
-Every such thread must block rather than poll (a poller above the loop starves it, and burns the CPU's real-time
-budget): the arm driver gives dynamixel-sdk's port a read slice for that (drivers/dynamixel.py).
+Once runtime.realtime has given the loop thread SCHED_FIFO on one CPU, a thread left at SCHED_OTHER can be starved
+(by a real-time process on another CPU, any busy process, or the loop's spin), and a starved thread that holds the
+GIL stalls the loop too (priority inversion). So every Python thread goes on the loop's CPU(s) one FIFO priority
+step above it: an I/O thread preempts the loop when its data arrives, parses for a few tens of microseconds and
+blocks again; the loop's spin yields the GIL on every turn (runtime.pacing). Threads without the GIL (onnxruntime's
+pool, the telemetry child process) are not touched; a loop without SCHED_FIFO leaves them as they are. Such a
+thread must block rather than poll: a poller above the loop starves it and burns the CPU's real-time budget.
 """
 
 from __future__ import annotations

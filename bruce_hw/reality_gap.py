@@ -29,8 +29,8 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from bruce_hw.config import Bound, checked_number, read_yaml
 from bruce_hw.types import RobotState
+from bruce_hw.yaml_reader import Bound, YamlReader, read_yaml
 
 GAPS_PACKAGE = "configs.gaps"
 
@@ -84,11 +84,16 @@ class RealityGap:
     sensor_latency_s: float = _gap_field("sensor.latency_s", _LATENCY)
 
     def __post_init__(self) -> None:
+        r = self._reader()
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise GapError(f"{self.source}: seed: expected an integer >= 0, got {self.seed!r}")
+            raise r.fail("seed", "an integer >= 0", self.seed)
         for f in fields(self):
             if "key" in f.metadata:
-                object.__setattr__(self, f.name, _checked(self.source, f.metadata, getattr(self, f.name)))
+                object.__setattr__(self, f.name, _checked(r, f.metadata, getattr(self, f.name)))
+
+    def _reader(self) -> YamlReader:
+        """The reader that checks values already looked up (from the YAML file or given in code)."""
+        return YamlReader(self.source, None, GapError)
 
     def per_joint(self, name: str, joints: Sequence[str]) -> np.ndarray:
         """Field `name` as an array in `joints` order."""
@@ -96,10 +101,7 @@ class RealityGap:
         if not isinstance(value, dict):
             return np.full(len(joints), value)
         f = _FIELDS[name]
-        unknown = [j for j in value if j not in joints]
-        if unknown:
-            raise GapError(f"{self.source}: {f.metadata['key']}.{unknown[0]}: unknown joint (expected one of "
-                           f"{list(joints)})")
+        self._reader().check_keys(f.metadata["key"], value, list(joints), what="joint")
         return np.array([value.get(j, f.default) for j in joints])
 
     def vec3(self, name: str) -> np.ndarray:
@@ -115,19 +117,20 @@ class RealityGap:
 _FIELDS = {f.name: f for f in fields(RealityGap) if "key" in f.metadata}
 _ATTR_OF_KEY = {f.metadata["key"]: name for name, f in _FIELDS.items()}
 SECTIONS = tuple(dict.fromkeys(key.split(".")[0] for key in _ATTR_OF_KEY))
+_NAMES_OF_SECTION = {section: {key.split(".")[1] for key in _ATTR_OF_KEY if key.startswith(f"{section}.")}
+                     for section in SECTIONS}
 GAP_BOUNDS = {f.metadata["key"]: f.metadata["bound"] for f in _FIELDS.values()}  # docs/config_bounds.md
 
 
-def _checked(source: str, meta: Any, value: Any) -> Any:
+def _checked(r: YamlReader, meta: Any, value: Any) -> Any:
+    """A gap parameter's value (a number, or a mapping joint -> number, or [x, y, z] by its shape) inside its bound."""
     key, bound, shape = meta["key"], meta["bound"], meta["shape"]
     if shape == "per_joint" and isinstance(value, dict):
-        return {str(j): checked_number(source, f"{key}.{j}", v, bound, GapError) for j, v in value.items()}
+        return {str(j): r.number(f"{key}.{j}", v, bound) for j, v in value.items()}
     if shape == "vec3" and isinstance(value, list | tuple | np.ndarray):
-        if len(value) != 3:
-            raise GapError(f"{source}: {key}: expected 3 numbers (x, y, z), got {len(value)}")
-        return tuple(checked_number(source, f"{key}[{i}]", v, bound, GapError) for i, v in enumerate(value))
+        return tuple(float(v) for v in r.vector(key, 3, list(value), bound))
     also = {"per_joint": " or a mapping joint name -> number", "vec3": " or a list of 3 numbers"}.get(shape, "")
-    return checked_number(source, key, value, bound, GapError, also)
+    return r.number(key, value, bound, also=also)
 
 
 # -- loading -------------------------------------------------------------------------------------------------
@@ -154,28 +157,14 @@ def gap_path(name_or_path: str | Path) -> Path:
 def parse_gap(data: Any, source: str, joints: Sequence[str] | None = None) -> RealityGap:
     """A parsed YAML tree -> RealityGap; unknown sections or keys, wrong types and out-of-range values raise
     GapError naming `source` and the key. With `joints`, per-joint mappings are checked against them."""
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise GapError(f"{source}: <top>: expected a mapping of seed and sections {list(SECTIONS)}, got {data!r}")
-    values: dict[str, Any] = {}
-    for section, node in data.items():
-        if section == "seed":
-            values["seed"] = node
-            continue
-        if section not in SECTIONS:
-            raise GapError(f"{source}: {section}: unknown key (expected seed or one of {list(SECTIONS)})")
-        if node is None:
-            continue
-        if not isinstance(node, dict):
-            raise GapError(f"{source}: {section}: expected a mapping, got {node!r}")
-        for name, value in node.items():
-            attr = _ATTR_OF_KEY.get(f"{section}.{name}")
-            if attr is None:
-                allowed = [k.split(".")[1] for k in _ATTR_OF_KEY if k.startswith(f"{section}.")]
-                raise GapError(f"{source}: {section}.{name}: unknown key (expected one of {allowed})")
-            values[attr] = value
-    gap = RealityGap(source=source, **values)
+    r = YamlReader(source, {} if data is None else data, GapError)
+    top = r.mapping("", {"seed", *SECTIONS})
+    values: dict[str, Any] = {"seed": top["seed"]} if "seed" in top else {}
+    for section in SECTIONS:
+        if top.get(section) is not None:  # an empty section is no gap
+            for name, value in r.mapping(section, _NAMES_OF_SECTION[section]).items():
+                values[_ATTR_OF_KEY[f"{section}.{name}"]] = value
+    gap = RealityGap(source=source, **values)  # checks the values
     if joints is not None:
         gap.check_joints(joints)
     return gap

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 FOOT_CONTACT_NAMES = ("r_toe", "r_heel", "l_toe", "l_heel")  # the sense board's contact bit order
+GRAVITY = 9.81  # m/s^2, the simulated world's (MuJoCo's default, which the robot's MJCF keeps)
 
 
 def all_finite(*arrays: np.ndarray) -> bool:

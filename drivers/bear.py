@@ -1,40 +1,9 @@
 """Koala BEAR actuators (Westwood Robotics) on RS-485: `BearBus`, a pyserial driver with bounded timeouts whose
 `bulk_cycle` does one control tick's I/O, and its reply types. The register tables are in `drivers.bear_registers`,
-the packet encoders and the resynchronising reply parser in `drivers.bear_codec`.
+the wire format, the packet encoders and the resynchronising reply parser in `drivers.bear_codec`.
 
-Wire protocol (Dynamixel-1.0-like; sources: Westwood's PyBEAR SDK and BRUCE-OP v0.0.7):
-
-    instruction   FF FF ID LEN INSTR params... CHK
-    status reply  FF FF ID LEN ERROR data...   CHK
-
-LEN counts the bytes after it (instruction/error byte, parameters, checksum), so LEN = n_params + 2.
-CHK = ~(ID + LEN + INSTR/ERROR + params) & 0xFF. Register values are 4 bytes little-endian, float32 or uint32 by
-register. Writes (WRITE_STAT, WRITE_CFG, SAVE_CFG) get no reply. BULK_COMM (0x12) goes to the broadcast ID 0xFE with
-params N, (n_read << 4 | n_write), read addresses, write addresses, then per motor its ID and 4 bytes per write
-register; every listed motor answers one status packet (LEN = 4 n_read + 2) in request order, none if n_read = 0.
-
-Choices where the sources are silent or disagree (drivers/emulators/bear.py makes the same ones):
-- homing_complete is u32 (PyBEAR and AOS; the Rust driver types it f32). error_status and warning_status (0x0E, 0x0F,
-  u32) stay in the table (AOS lists them; the Rust driver dropped them as unused).
-- Status registers other than torque_enable and the goals are read-only: the driver refuses to write them.
-- Error bits 0 (communication) and 1 (overheat) are warnings that reset by themselves; bits 2-6 are faults
-  (`FAULT_BITS`); bit 3 is the watchdog / E-stop / damping bit. A reply whose error byte lacks bit 7 is not a status
-  packet (it is an instruction, e.g. an echo or another host) and is rejected as "foreign".
-- The ping reply's data (firmware/hardware version; content undocumented) is returned as raw bytes of any length.
-- Timeouts: all replies of a request must be in within `reply_timeout_s` (2 ms: BRUCE's bulk_timeout, AOS) plus the
-  wire time of request and replies at the bus baud rate, and once they have started, each within REPLY_GAP_S of the
-  bytes before it; `tries` = 2 (AOS). Time in which the host did not run the reading thread (a read that returned
-  more than STALL_TOLERANCE_S after its slice: a preempted thread, a paused VM) is not counted against the device:
-  the replies are then still in the kernel's tty path, stalled with us. A bulk retry is sent only to the motors
-  that did not answer (their goals are written again; goal writes are idempotent). Serial reads block at most
-  `read_slice_s` each, so no call can block for long, whatever the device does. Replies come in request order, so
-  once the last ID's reply is in, a missing earlier one is lost and nobody waits for it. The control tick's bulk
-  cycle (`partial=True`) never retries: a lost reply costs that motor one sample, which the caller keeps from before.
-- Current registers (limit_i_max, goal_iq, goal_id) are never written beyond the Koala BEAR's rated 30 A.
-- Config registers can only be written while torque is disabled (Rust driver), and a BEAR gives no reply to writes,
-  so `write_config` reads the values back and raises if the device did not take them.
-- f32 values must be finite (a NaN goal is never sent to a motor); u32 values must be integers in range, so a u32
-  register is never encoded as float32 (PyBEAR's bulk path does that; the sources call it a bug).
+Sources: Westwood's PyBEAR SDK and BRUCE-OP v0.0.7; where they are silent or disagree, the choice is noted at the
+code that makes it, and drivers/emulators/bear.py makes the same ones.
 """
 
 from __future__ import annotations
@@ -75,6 +44,9 @@ from drivers.bear_registers import (
 from drivers.errors import BusTimeout, DeviceFault, DriverError, LinkStats
 
 DEFAULT_BAUD = 8_000_000
+# Timeouts: all replies of a request must be in within `reply_timeout_s` (2 ms: BRUCE's bulk_timeout, AOS) plus the
+# wire time of request and replies, `tries` = 2 (AOS). Serial reads block at most `read_slice_s` each, so no call
+# blocks for long whatever the device does.
 # Longest pause between two replies of one request before the rest counts as lost: the BEARs answer back to back,
 # and a USB adapter in low-latency mode delivers what it holds at least every millisecond.
 REPLY_GAP_S = 0.0015
@@ -90,7 +62,7 @@ MAX_STALL_CREDIT_S = 0.05
 class PingReply:
     id: int
     error: int
-    data: bytes  # firmware/hardware version bytes (content undocumented)
+    data: bytes  # firmware/hardware version bytes (content undocumented): raw, of any length
 
     @property
     def flags(self) -> tuple[str, ...]:
@@ -253,7 +225,7 @@ class BearBus:
 
     def write_config(self, device_id: int, values: Mapping[str | int, int | float], verify: bool = True) -> None:
         """Write config registers; with `verify`, read them back and raise DriverError if the BEAR did not take
-        them (it ignores config writes while torque is enabled)."""
+        them: it ignores config writes while torque is enabled (Rust driver) and gives no reply to writes."""
         registers = [config_register(n) for n in values]
         pairs = list(zip(registers, values.values(), strict=True))
         self._send(encode_write(device_id, pairs))
@@ -315,6 +287,7 @@ class BearBus:
         for attempt in range(1 if partial else self.tries):
             if attempt:
                 self.stats.retries += 1
+                # only to the motors that did not answer: their goals are written again (goal writes are idempotent)
                 request = encode_bulk(pending, reads, writes, [rows[i] for i in pending] if writes else None)
             got.update(self._exchange(request, pending, reply_length(len(reads))))
             pending = [i for i in pending if i not in got]

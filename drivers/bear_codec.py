@@ -1,5 +1,14 @@
 """Koala BEAR packets: an encoder per instruction, value decoding, and `StatusParser`, which resynchronises on the
-header and rejects what is not a status packet (the wire format: `drivers/bear.py`). Pure: no I/O."""
+header and rejects what is not a status packet. Pure: no I/O.
+
+Wire format (Dynamixel-1.0-like; Westwood's PyBEAR SDK and BRUCE-OP v0.0.7)::
+
+    instruction   FF FF ID LEN INSTR params... CHK
+    status reply  FF FF ID LEN ERROR data...   CHK
+
+LEN = n_params + 2 (the bytes after it); CHK = ~(ID + LEN + INSTR/ERROR + params) & 0xFF. Register values are 4
+bytes little-endian, float32 or uint32 by register. Writes (WRITE_STAT, WRITE_CFG, SAVE_CFG) get no reply.
+"""
 
 from __future__ import annotations
 
@@ -69,7 +78,10 @@ def encode_save_config(device_id: int) -> bytes:
 
 def encode_bulk(ids: Sequence[int], read_regs: Sequence[Register], write_regs: Sequence[Register] = (),
                 values=None) -> bytes:
-    """BULK_COMM to the broadcast ID. `values[k][j]` is motor ids[k]'s value of write_regs[j], packed by type."""
+    """BULK_COMM (0x12) to the broadcast ID: params N, (n_read << 4 | n_write), read addresses, write addresses, then
+    per motor its ID and 4 bytes per write register. `values[k][j]` is motor ids[k]'s value of write_regs[j],
+    packed by type. Every listed motor answers one status packet (LEN = 4 n_read + 2) in request order, none if
+    n_read = 0."""
     ids = [int(i) for i in ids]
     if not ids or len(set(ids)) != len(ids) or not all(0 <= i <= MAX_DEVICE_ID for i in ids):
         raise ValueError(f"BULK_COMM needs distinct device IDs in 0..{MAX_DEVICE_ID}, got {ids}")

@@ -1,5 +1,5 @@
 """Koala BEAR register tables, instructions, modes, limits and the error byte (sources: Westwood's PyBEAR SDK and
-BRUCE-OP v0.0.7; where they are silent: the choices listed in `drivers/bear.py`). Pure data: no I/O."""
+BRUCE-OP v0.0.7; where they are silent, the choice is noted here). Pure data: no I/O."""
 
 from __future__ import annotations
 
@@ -79,7 +79,8 @@ class Register:
         return "I" if self.kind == "u32" else "f"
 
     def check(self, value) -> int | float:
-        """The value as it will be packed: an int for u32 (never a float), a finite float for f32."""
+        """The value as it will be packed: an int for u32 (never a float: PyBEAR's bulk path encodes u32 as float32,
+        which the sources call a bug), a finite float for f32 (a NaN goal is never sent to a motor)."""
         if self.kind == "u32":
             if isinstance(value, bool | np.bool_ | int | np.integer):
                 number = int(value)
@@ -137,7 +138,9 @@ CONFIG_REGISTERS = _table("config", [
     (0x1E, "return_time_delay", "u32"),  # Rust driver only, "experimental"
 ])
 
-# Volatile. BULK_COMM only reaches these.
+# Volatile. BULK_COMM only reaches these. Those other than torque_enable and the goals are read-only: the driver
+# refuses to write them. homing_complete is u32 (PyBEAR and AOS; the Rust driver types it f32); error_status and
+# warning_status stay (AOS lists them; the Rust driver dropped them as unused).
 STATUS_REGISTERS = _table("status", [
     (0x00, "torque_enable", "u32"),
     (0x01, "homing_complete", "u32"),
@@ -189,7 +192,9 @@ def status_register(key: str | int | Register) -> Register:
 
 # -- error byte -----------------------------------------------------------------------------------------------------
 class BearError(IntFlag):
-    """Bits of the error byte every reply carries. Bit 7 is always set: 0x80 means no error."""
+    """Bits of the error byte every reply carries. Bit 7 is always set: 0x80 means no error, and a packet whose
+    error byte lacks it is an instruction (an echo, another host), rejected as "foreign". Bits 0 and 1 are
+    warnings that reset by themselves; bits 2-6 are faults (`FAULT_BITS`)."""
 
     COMMUNICATION = 0x01  # a corrupted packet was received (warning, resets by itself)
     OVERHEAT = 0x02  # a temperature is above temp_limit_low (warning, resets by itself)

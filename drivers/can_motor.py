@@ -1,40 +1,11 @@
 """CAN actuators in MIT mode (the "mini cheetah" protocol of Ben Katz's motor controller, as spoken by T-Motor /
 CubeMars AK-series actuators): pure frame encoders/decoders, and a per-tick bus driver over python-can.
 
-Wire format (classic CAN, 11-bit identifiers; every field is an unsigned integer scaled linearly onto a range):
-
-- Command, host -> motor, arbitration ID = motor ID, 8 bytes. Fields p (16 bit), v, kp, kd, t (12 bit each) are
-  packed most significant bit first: ``[p15..8] [p7..0] [v11..4] [v3..0|kp11..8] [kp7..0] [kd11..4] [kd3..0|t11..8]
-  [t7..0]``. The motor applies ``tau = kp (p - p_meas) + kd (v - v_meas) + t``.
-- Reply, motor -> host, arbitration ID = host ID (the firmware's CAN_MASTER, 0 by default), 6 bytes:
-  ``[motor ID] [p15..8] [p7..0] [v11..4] [v3..0|t11..8] [t7..0]`` (position, velocity, torque).
-- Special 8-byte commands: ``FF FF FF FF FF FF FF FC`` enter motor mode, ``..FD`` exit motor mode (rest: no torque),
-  ``..FE`` set the present position as zero. The motor answers every frame addressed to it with a reply.
-
-Scaling follows the published reference: ``uint = trunc((x - min) (2^bits - 1) / (max - min))`` after clamping x to
-[min, max], and ``x = uint (max - min) / (2^bits - 1) + min``, so a round trip is exact to one step.
-
-Choices where the protocol leaves things open (written down here: no BRUCE source covers CAN):
-
-- Ranges are per motor (`MitRanges`). The default, `AK80_9_V1P1`, is the T-Motor AK80-9 on firmware V1.1 as used by
-  the public mini-cheetah-motor-driver-socketcan driver: p +-12.5 rad, v +-22.5 rad/s, kp 0..500 Nm/rad,
-  kd 0..5 Nm s/rad, t +-18 Nm. Other firmwares use other ranges, which is why they are configurable.
-- A reply is accepted with 6 bytes (the reference) or 8 (newer CubeMars firmware appends temperature and an error
-  code, which are ignored here). Anything else (wrong length, other arbitration ID, extended ID, remote or error
-  frame, unknown motor ID, a second reply in one tick, a reply left over from an earlier tick) is rejected and
-  counted in `LinkStats` by reason; the parser never raises.
-- A command whose fields would all be at full scale aliases a special frame (e.g. torque 0xFFC = enter motor mode);
-  the encoder lowers the torque field by one step instead of sending it.
-- Motor IDs are 1..255 (the reply names its motor in one byte) and differ from the host ID.
-- No retry inside a tick: a silent motor costs the tick (`BusTimeout` naming it); the next tick is 1 ms later and
-  a re-sent command would be stale. Start-up frames (enter/exit motor mode, set zero) are retried.
-- Bus time: one command plus one reply is up to ~250 bit times with worst-case bit stuffing, so at 1 Mbit/s one
-  channel carries at most 3 motors at 1 kHz (`worst_case_cycle_s`); configs/robots/bruce_can.yaml therefore puts
-  BRUCE's ten leg motors on four channels and `CanMotorGroup` sends on all of them before collecting from any.
-
-Actuator units: `CanMotorBus` speaks actuator-output units (the columns of the robot's coupling matrix) and maps
-them to motor units with a per-motor gear ratio, sign and offset (`ActuatorMap`): motor position
-``p = gear sign (m - offset)``, motor torque ``t = sign tau / gear``, gains divided by gear^2.
+`CanMotorBus` drives the motors of one channel, `CanMotorGroup` several channels as one (it sends on all before
+collecting from any). Classic CAN, 11-bit identifiers; each frame's layout is at its encoder. The driver speaks
+actuator-output units (the columns of the robot's coupling matrix) and maps them to motor units per motor
+(`ActuatorMap`). No BRUCE source covers CAN: where the protocol leaves things open, the choice is noted at the code
+that makes it.
 """
 
 from __future__ import annotations
@@ -49,15 +20,15 @@ import numpy as np
 
 from drivers.errors import BusTimeout, DriverError, LinkStats
 
+# Special 8-byte commands (rest mode: no torque); the motor answers every frame addressed to it with a reply.
 ENTER_MOTOR_MODE = bytes([0xFF] * 7 + [0xFC])
 EXIT_MOTOR_MODE = bytes([0xFF] * 7 + [0xFD])
 SET_ZERO = bytes([0xFF] * 7 + [0xFE])
 SPECIAL_FRAMES = {ENTER_MOTOR_MODE: "enter_motor_mode", EXIT_MOTOR_MODE: "exit_motor_mode", SET_ZERO: "set_zero"}
 
 COMMAND_LENGTH = 8
-REPLY_LENGTHS = (6, 8)
-MAX_MOTOR_ID = 0xFF
-MAX_STANDARD_ID = 0x7FF
+REPLY_LENGTHS = (6, 8)     # the reference's 6; newer CubeMars firmware appends temperature and an error code (ignored)
+MAX_MOTOR_ID = 0xFF        # the reply names its motor in one byte
 
 
 class FrameError(ValueError):
@@ -90,7 +61,8 @@ class MitRanges:
         return cls(**{name: tuple(get(name)) for name in ("p", "v", "kp", "kd", "t")})
 
 
-# T-Motor AK80-9, firmware V1.1 (MIT mode).
+# T-Motor AK80-9, firmware V1.1 (MIT mode), as used by the public mini-cheetah-motor-driver-socketcan driver. Other
+# firmwares use other ranges, which is why they are configurable per motor.
 AK80_9_V1P1 = MitRanges(p=(-12.5, 12.5), v=(-22.5, 22.5), kp=(0.0, 500.0), kd=(0.0, 5.0), t=(-18.0, 18.0))
 
 
@@ -110,7 +82,8 @@ class MotorReply(NamedTuple):
 
 
 def float_to_uint(x: float, lo: float, hi: float, bits: int) -> int:
-    """Clamp x to [lo, hi] and scale it onto 0 .. 2^bits - 1 (truncating, as the reference does)."""
+    """Clamp x to [lo, hi] and scale it onto 0 .. 2^bits - 1 (truncating, as the reference does): uint = trunc((x -
+    lo) (2^bits - 1) / (hi - lo)); `uint_to_float` inverts it, so a round trip is exact to one step."""
     x = float(x)
     if not math.isfinite(x):
         raise ValueError(f"cannot encode a non-finite value ({x})")
@@ -129,6 +102,10 @@ def step(lo: float, hi: float, bits: int) -> float:
 
 
 def encode_command(command: MitCommand | Sequence[float], ranges: MitRanges) -> bytes:
+    """Host -> motor, arbitration ID = motor ID, 8 bytes, fields most significant bit first: ``[p15..8] [p7..0]
+    [v11..4] [v3..0|kp11..8] [kp7..0] [kd11..4] [kd3..0|t11..8] [t7..0]``; the motor applies ``tau = kp (p -
+    p_meas) + kd (v - v_meas) + t``. A command with every field at full scale would alias a special frame (torque
+    0xFFC = enter motor mode): its torque field is lowered by one step instead."""
     p_des, v_des, kp, kd, t_ff = command
     p = float_to_uint(p_des, *ranges.p, 16)
     v = float_to_uint(v_des, *ranges.v, 12)
@@ -160,6 +137,8 @@ def special_kind(data: bytes) -> str | None:
 
 
 def encode_reply(motor_id: int, position: float, velocity: float, torque: float, ranges: MitRanges) -> bytes:
+    """Motor -> host, arbitration ID = host ID (the firmware's CAN_MASTER, 0 by default), 6 bytes:
+    ``[motor ID] [p15..8] [p7..0] [v11..4] [v3..0|t11..8] [t7..0]``."""
     if not 0 <= motor_id <= MAX_MOTOR_ID:
         raise ValueError(f"motor ID {motor_id} does not fit the reply's ID byte")
     p = float_to_uint(position, *ranges.p, 16)
@@ -202,7 +181,9 @@ def check_motor_ids(motor_ids: Iterable[int], host_id: int, where: str) -> tuple
 
 
 def worst_case_cycle_s(n_motors: int, bitrate: int) -> float:
-    """Bus time of one command and one reply per motor, with worst-case bit stuffing (classic CAN, 11-bit IDs)."""
+    """Bus time of one command and one reply per motor, with worst-case bit stuffing (classic CAN, 11-bit IDs): ~250
+    bit times per motor, so at 1 Mbit/s one channel carries at most 3 motors at 1 kHz (configs/robots/bruce_can.yaml
+    puts BRUCE's ten leg motors on four channels)."""
 
     def frame_bits(n_data: int) -> int:
         stuffed = 34 + 8 * n_data  # SOF .. CRC, where stuff bits can be inserted
@@ -212,7 +193,9 @@ def worst_case_cycle_s(n_motors: int, bitrate: int) -> float:
 
 
 class ReplyDecoder:
-    """Accepts the replies of one channel's motors and rejects everything else, counting why."""
+    """Accepts the replies of one channel's motors and rejects everything else (wrong length, other arbitration ID,
+    extended ID, remote or error frame, unknown motor ID; the bus adds a second reply in one tick and one left over
+    from an earlier tick), counting why; it never raises."""
 
     def __init__(self, ranges: Mapping[int, MitRanges], host_id: int = 0, stats: LinkStats | None = None):
         self.ranges = dict(ranges)
@@ -303,6 +286,8 @@ class CanMotorBus:
     scalars) sends every command frame, then collects the replies until all motors answered or `timeout_s` ran out,
     and returns a `MotorState`. `send_commands` + `collect` are the two halves, for sending on several channels
     before collecting (`CanMotorGroup`). `bus` may be an already open python-can bus (it is then not owned).
+    No retry inside a tick: a silent motor costs the tick (`BusTimeout` naming it), since the next tick is 1 ms later
+    and a re-sent command would be stale; the start-up frames (enter/exit motor mode, set zero) are retried.
     """
 
     def __init__(self, channel: str, motor_ids: Sequence[int], ranges: Any = AK80_9_V1P1, *,

@@ -6,35 +6,9 @@ Two parts:
   and Hardware Error Status decoding, and the joint <-> servo unit conversions. The emulator
   (`drivers/emulators/dynamixel.py`) speaks through this part; the driver itself leaves the wire to the SDK.
 * `DynamixelArms`, the driver: the SDK's PortHandler and PacketHandler(2.0), a GroupSyncRead of present position and
-  velocity and a GroupSyncWrite of goal position, per tick.
-
-Choices where the sources (BRUCE-OP v0.0.7's `run_dxl` and the dynamixel-sdk) are silent, written down here:
-
-* Read block: BRUCE's indirect block. Indirect Address 6..13 (addresses 178..192) point at present position
-  (132..135) then present velocity (128..131), so Indirect Data 6..13 (229..236) are one 8-byte GroupSyncRead.
-* Joint <-> servo: servo angle = sign * q + pi (2048 counts = joint 0, 2*pi/4096 rad per count), sign -1 on both
-  elbows (arm indices 2 and 5); velocity 0.229 rpm per count, int32 two's complement. Goals are clipped to the
-  joint limits given, then to the position-mode range 0..4095.
-* Setup (torque disabled): drive mode 0, operating mode 3 (position), position P/I/D 800/0/0, indirect addresses.
-  The servos' own position limits (EEPROM 48/52) are left at their defaults; the driver clips instead.
-* Timeouts: the SDK's own packet timeout (`PortHandler.setPacketTimeout`: wire time + 2 x latency + 2 ms), with the
-  latency term configurable (`latency_ms`, default 2 ms; the SDK hard-codes 16 ms, BRUCE sets the FTDI latency
-  timer to 1 ms). A sync read therefore gives up about 6.6 ms after its request.
-* A sync read is requested with GroupSyncRead and its status packets are collected by ID with this module's
-  `PacketParser` (not GroupSyncRead.rxPacket, which stops at the first silent servo, nor the SDK's rxPacket, which
-  swallows the start of the reply after a cut-short one), so a BusTimeout names exactly the silent IDs and bad
-  replies are counted by reason in `stats`.
-* A status packet with the Alert bit (0x80) makes the driver read Hardware Error Status (70) of that servo and raise
-  `DeviceFault` with the named flags; a protocol error number (low 7 bits) is raised as `DeviceFault` too.
-* `close()` disables torque (best effort), as BRUCE-OP's run_dxl does on exit.
-* Bus Watchdog (98, RAM, 20 ms units; `watchdog_s`, from `buses.dynamixel.watchdog_s`): a servo with torque on that
-  hears no instruction packet for longer stops (holds where it is) and reads -1 (`BUS_WATCHDOG_ERROR`), its goals
-  read-only until 0 is written, so a killed host or an unplugged bus does not leave the arms on their last goal.
-  `setup()` (torque off) writes 0 (clearing an error a previous run left), then round(watchdog_s / 0.02), and reads
-  it back; with `watchdog_s` 0 (not configured) the register is not touched. `close()` writes 0 after torque off,
-  on the servos whose torque off succeeded (best effort): a servo whose torque could not be turned off keeps its
-  watchdog, so it still stops by itself; with `torque_off_on_close=False` no servo is cleared once torque was on.
-  At 50 Hz the arm loop sends a packet every 20 ms, so any setting well above that is quiet in normal running.
+  velocity and a GroupSyncWrite of goal position, per tick; the Bus Watchdog set up so that a killed host or an
+  unplugged bus stops the arms (docs/safety.md). Choices where BRUCE-OP v0.0.7's `run_dxl` and the SDK are silent
+  are noted at the code that makes them.
 """
 
 from __future__ import annotations
@@ -96,14 +70,14 @@ ADDR_INDIRECT_READ = 178          # Indirect Address 6 (168 + 2 * 5)
 ADDR_INDIRECT_DATA_READ = 229     # Indirect Data 6 (224 + 5)
 READ_BLOCK_LENGTH = 8             # present position (4) then present velocity (4)
 OPERATING_MODE_POSITION = 3
-BUS_WATCHDOG_UNIT_S = 0.02        # seconds per count of Bus Watchdog
+BUS_WATCHDOG_UNIT_S = 0.02        # seconds per count of Bus Watchdog (the 50 Hz arm loop sends a packet every 20 ms)
 BUS_WATCHDOG_MAX = 127            # counts (2.54 s)
 BUS_WATCHDOG_ERROR = -1           # Bus Watchdog reads -1 (0xFF) after it stopped the servo
 
 # -- X-series units -----------------------------------------------------------------------------------------------
 POSITION_UNIT = 2.0 * math.pi / 4096.0         # rad per count
 VELOCITY_UNIT = 0.229 * 2.0 * math.pi / 60.0   # rad/s per count (0.229 rpm)
-CENTER_COUNTS = 2048                           # servo angle pi = joint 0
+CENTER_COUNTS = 2048                           # servo angle pi = joint 0 (servo angle = sign * q + pi)
 POSITION_COUNTS_MAX = 4095                     # position mode range 0..4095
 
 
@@ -305,14 +279,6 @@ def encode_hardware_error(flags: Sequence[str]) -> int:
     return sum(1 << HARDWARE_ERROR_BITS[f] for f in set(flags))
 
 
-def to_int32(value: int | np.ndarray) -> Any:
-    """Unsigned 32-bit register value -> two's complement."""
-    if isinstance(value, np.ndarray):
-        return value.astype(np.uint32).view(np.int32).astype(np.int64)
-    value &= 0xFFFFFFFF
-    return value - (1 << 32) if value & 0x80000000 else value
-
-
 def counts_to_joint(counts: np.ndarray, signs: np.ndarray) -> np.ndarray:
     return signs * (np.asarray(counts, dtype=np.float64) - CENTER_COUNTS) * POSITION_UNIT
 
@@ -353,7 +319,8 @@ def watchdog_counts(watchdog_s: float) -> int:
 
 
 def indirect_read_map() -> bytes:
-    """The 16 bytes written at Indirect Address 6..13: the byte addresses of present position, then velocity."""
+    """The 16 bytes written at Indirect Address 6..13: the byte addresses of present position, then velocity (BRUCE's
+    indirect block), so that Indirect Data 6..13 (229..236) are one 8-byte GroupSyncRead."""
     addresses = [ADDR_PRESENT_POSITION + i for i in range(4)] + [ADDR_PRESENT_VELOCITY + i for i in range(4)]
     return b"".join(a.to_bytes(2, "little") for a in addresses)
 
@@ -364,7 +331,9 @@ READ_SLICE_S = 0.0005  # the longest one poll of the port blocks (see DynamixelA
 
 
 def _bounded_port_class() -> type:
-    """The SDK's PortHandler with the latency term of its packet timeout configurable (the SDK hard-codes 16 ms)."""
+    """The SDK's PortHandler with the latency term of its packet timeout configurable: wire time + 2 x latency + 2 ms
+    (the SDK hard-codes 16 ms; BRUCE sets the FTDI latency timer to 1 ms, and the default 2 ms makes a sync read give
+    up about 6.6 ms after its request)."""
     global _PORT_CLASS
     if _PORT_CLASS is None:
         from dynamixel_sdk import PortHandler
@@ -529,8 +498,9 @@ class DynamixelArms:
             self._sync_write.addParam(dxl_id, [0, 0, 0, 0])
 
     def close(self) -> None:
-        """Torque off (if it was ever on and `torque_off_on_close`), then Bus Watchdog 0 on the servos known to be
-        torque-off (if setup wrote it), then the port closed. Best effort: errors are swallowed."""
+        """Torque off (if it was ever on and `torque_off_on_close`, as BRUCE-OP's run_dxl does on exit), then Bus
+        Watchdog 0 on the servos known to be torque-off (if setup wrote it), then the port closed. Best effort: errors
+        are swallowed."""
         if self._port is None:
             return
         try:
@@ -593,6 +563,8 @@ class DynamixelArms:
         raise BusTimeout(self.bus, [dxl_id], what)
 
     def _checked(self, what: str, dxl_id: int, call, *args, alert_ok: bool = False) -> Any:
+        """`_transact`, with a protocol error number, or the Alert bit (then Hardware Error Status is read for the
+        flags' names), raised as `DeviceFault`."""
         value, error = self._transact(what, dxl_id, call, *args)
         if error & 0x7F or (error & ERROR_ALERT and not alert_ok):
             self._raise_error(dxl_id, error)
@@ -626,7 +598,8 @@ class DynamixelArms:
         return dict(self.models)
 
     def setup(self) -> None:
-        """Torque off, then drive mode 0, position mode, position PID gains and the indirect read block."""
+        """Torque off, then drive mode 0, position mode, position PID gains and the indirect read block. The servos'
+        own position limits (EEPROM 48/52) are left at their defaults: `goal_counts` clips instead."""
         block = list(indirect_read_map())
         for dxl_id in self.ids:
             self._checked("torque off", dxl_id, self._ph.write1ByteTxRx, ADDR_TORQUE_ENABLE, 0)

@@ -1,40 +1,12 @@
 """BRUCE's sense board (Raspberry Pi Pico, BRUCE-OP v0.0.5/v0.0.7 firmware) on USB serial: IMU and foot contacts.
 
-Wire protocol (BRUCE-OP v0.0.7's sense board; firmware `Library/BRUCE_SENSE/pico/pico.ino`, host `Manager.py`):
-
-- Pico -> host, 29 bytes, 1 kHz, only in NOMINAL mode::
-
-      0xFF | 27 | accel x,y,z float32 LE | gyro x,y,z float32 LE | contacts | checksum | 0xFE
-
-  accel is the specific force in m/s^2 (+9.81 on the up axis at rest, the firmware's calibration subtracts g from
-  z), gyro in rad/s, both in IMU axes, bias-corrected by the board. The contact byte is 0x80 | bits 0..3 =
-  r_toe, r_heel, l_toe, l_heel (1 = contact), which is `bruce_hw.types.FOOT_CONTACT_NAMES` order. checksum =
-  NOT(sum of bytes 1..26) & 0xFF. A packet whose contact byte is 0xFF is a calibration bias report, not a sample.
-- Host -> Pico, 5 bytes: ``0xFF | 3 | cooling_speed << 2 | mode | NOT(3 + that byte) & 0xFF | 0xFE``;
-  mode 0 idle, 1 nominal (stream), 2 reset IMU (then idle), 3 calibrate. cooling_speed 0..10.
-  The firmware reads commands only once per second in NOMINAL mode (every ~10 ms in IDLE), the last valid command
-  in its buffer wins, and the rest of its buffer is discarded.
-
-Units and frames: the packet already carries what the hw backend's IMU sample wants (rad/s, m/s^2 specific force,
-IMU frame); no conversion is made. The board gives no orientation (the backend's attitude filter adds it) and the spec
-found no IMU -> body rotation (the official estimator treats IMU axes as body axes). The board has no e-stop input:
-BRUCE's wireless stop is wired to the BEARs (Westwood's Wireless_ESTOP), so e-stop reaches the stack through the
-BEAR error byte.
-
-Choices where the spec is silent or the official code is unsafe (all bounded in time, nothing blocks forever):
-- The parser keeps every packet rather than flushing the input buffer after one as the official host does, and
-  checks the contact byte too (0x80..0x8F sample, 0xFF bias report; anything else is rejected as "flags").
-  Reject reasons: "garbage" (bytes outside any packet, counted once per run), "length", "trailer", "checksum",
-  "flags", "truncated" (a packet cut short: the next header appears inside it, or the stream stalls mid-packet).
-- Start-up IMU check: as the official `run_sense.IMU_check` (500 samples, sample std-dev of accel x <= 1.0 m/s^2,
-  otherwise reset and retry), but with a bounded number of attempts and a timeout per step. The official code sends
-  "reset", sleeps 0.5 s and sends "nominal"; since the firmware polls only once a second in NOMINAL mode, both
-  commands often land in the same poll and the reset is lost. Here `reset_imu` waits until the stream stops (the
-  reset took effect: the board went idle) before asking for NOMINAL again.
-- The host's command is sent once per change (the official host re-sends cooling at 1 Hz; the firmware keeps
-  its mode and cooling until told otherwise, so re-sending adds nothing).
-- Timestamps are the host's `time.monotonic()` when the packet's bytes were read (the board sends no time).
-- `stats.timeouts` counts stream stalls: gaps of more than `stall_s` without a packet while NOMINAL was requested.
+The wire protocol (firmware `Library/BRUCE_SENSE/pico/pico.ino`, host `Manager.py`) without I/O: `encode_command`,
+`encode_packet`, `check_packet`, `SenseParser`; and `SenseBoard`, a daemon thread that keeps the newest sample, with
+the official start-up checks bounded in time. A packet carries what the hw backend's IMU sample wants (rad/s, m/s^2
+specific force, IMU frame): no conversion is made. The board gives no orientation (the backend's attitude filter
+adds it), the spec gives no IMU -> body rotation (the official estimator treats IMU axes as body axes), and it has
+no e-stop input: BRUCE's wireless stop is wired to the BEARs, so an e-stop reaches the stack through their error
+byte. Timestamps are the host's `time.monotonic()` when a packet's bytes were read (the board sends no time).
 """
 
 from __future__ import annotations
@@ -60,7 +32,7 @@ COMMAND_REST_LEN = COMMAND_LEN - 2
 CONTACT_MARK = 0x80        # bit 7 of the contact byte is always set
 BIAS_REPORT_FLAGS = 0xFF   # contact byte of a calibration bias report
 MAX_COOLING_SPEED = 10
-GRAVITY = 9.80665          # the firmware's g (ISM330DHCX.h)
+FIRMWARE_GRAVITY = 9.80665  # m/s^2 per g in the firmware's accelerometer scale (ISM330DHCX.h)
 _FLOATS = struct.Struct("<6f")
 _HEADER_AND_LENGTH = bytes((HEADER, PACKET_REST_LEN))
 
@@ -89,7 +61,10 @@ def checksum(body: bytes | bytearray | memoryview) -> int:
 
 # -- host -> board ---------------------------------------------------------------------------------------------
 def encode_command(mode: PicoMode | int | str, cooling_speed: int = 0) -> bytes:
-    """The 5-byte command; raises ValueError for a mode or cooling speed the firmware does not define."""
+    """The 5-byte command ``0xFF | 3 | cooling_speed << 2 | mode | NOT(3 + that byte) & 0xFF | 0xFE`` (mode 0 idle,
+    1 nominal (stream), 2 reset IMU (then idle), 3 calibrate; cooling 0..10); raises ValueError for a mode or
+    cooling speed the firmware does not define. The firmware reads commands only once per second in NOMINAL mode
+    (every ~10 ms in IDLE), the last valid command in its buffer wins, and the rest of the buffer is discarded."""
     mode = PicoMode.parse(mode)
     if not (isinstance(cooling_speed, int | np.integer) and 0 <= cooling_speed <= MAX_COOLING_SPEED):
         raise ValueError(f"cooling_speed must be an integer 0..{MAX_COOLING_SPEED}, got {cooling_speed!r}")
@@ -116,7 +91,11 @@ def contact_byte(contact) -> int:
 
 
 def encode_packet(accel, gyro, contact=(False,) * 4, *, bias_report: bool = False) -> bytes:
-    """The 29-byte packet (values are rounded to float32, as the board sends them)."""
+    """The 29-byte packet, 1 kHz, only in NOMINAL mode: ``0xFF | 27 | accel x,y,z float32 LE | gyro x,y,z float32 LE
+    | contacts | checksum | 0xFE`` (values rounded to float32, as the board sends them). accel is the specific force
+    (+g on the up axis at rest: the firmware's calibration subtracts g from z), gyro bias-corrected by the board.
+    contacts: 0x80 | bits 0..3 in FOOT_CONTACT_NAMES order (1 = contact); 0xFF marks a calibration bias report.
+    checksum = NOT(sum of bytes 1..26) & 0xFF."""
     flags = BIAS_REPORT_FLAGS if bias_report else contact_byte(contact)
     body = bytearray((PACKET_REST_LEN,))
     body += _FLOATS.pack(*(float(v) for v in accel), *(float(v) for v in gyro))
@@ -172,7 +151,10 @@ def decode_packet(packet: bytes | bytearray | memoryview, offset: int = 0) -> Se
 class SenseParser:
     """Incremental parser of the board's byte stream. Never raises on bad bytes: it counts them in `stats`
     and resynchronises on the next header (a failed candidate costs one byte, so a real packet that starts
-    inside a false one is still found)."""
+    inside a false one is still found). Unlike the official host, which flushes its input after one packet, it
+    keeps every packet. Reject reasons: "garbage" (bytes outside any packet, counted once per run), "length",
+    "trailer", "checksum", "flags" (a contact byte that is neither 0x80..0x8F nor 0xFF), "truncated" (the next
+    header appears inside a packet, or the stream stalls mid-packet)."""
 
     def __init__(self, stats: LinkStats | None = None):
         self.stats = stats if stats is not None else LinkStats()
@@ -324,7 +306,8 @@ class SenseBoard:
     # -- commands
     def set_mode(self, mode: PicoMode | int | str, cooling_speed: int | None = None) -> None:
         """Send a mode (and cooling speed, default: unchanged). In NOMINAL mode the firmware takes up to 1 s to
-        act on it."""
+        act on it. Sent once per change: the official host re-sends cooling at 1 Hz, but the firmware keeps its mode
+        and cooling until told otherwise."""
         mode = PicoMode.parse(mode)
         cooling = self.cooling_speed if cooling_speed is None else cooling_speed
         packet = encode_command(mode, cooling)
@@ -421,7 +404,9 @@ class SenseBoard:
 
     def reset_imu(self, *, stop_timeout_s: float = 3.0, stream_timeout_s: float = 3.0, quiet_s: float = 0.05) -> None:
         """RESET (the firmware re-configures the IMU and goes IDLE), wait for the stream to stop, then NOMINAL
-        and wait for it to resume. Bounded; DriverError naming the port if the board does not follow."""
+        and wait for it to resume. Bounded; DriverError naming the port if the board does not follow. The official
+        code sends RESET, sleeps 0.5 s and sends NOMINAL; since the firmware polls once a second in NOMINAL mode,
+        both often land in the same poll and the reset is lost: waiting for the stream to stop avoids that."""
         self.set_mode(PicoMode.RESET)
         deadline = time.monotonic() + stop_timeout_s
         while self.age() < quiet_s:
@@ -499,6 +484,7 @@ class SenseBoard:
                 if not data:
                     if self._parser.pending:
                         self._parser.drop_partial()
+                    # stats.timeouts counts stalls: gaps longer than stall_s while NOMINAL was requested
                     if (not stalled and self.mode == PicoMode.NOMINAL and self._latest[0] is not None
                             and now - self._latest[1] > self.stall_s):
                         stalled = True

@@ -24,7 +24,7 @@ from runtime.exit import NOTHING_ENABLED, ExitCode, StopFlag, StopRequested
 
 def positive_seconds(text: str) -> float:
     value = float(text)
-    if not value > 0:
+    if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"expected a duration > 0 s, got {text}")
     return value
 

@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bruce_hw.config import Bound, ConfigError, checked_number, read_yaml
+from bruce_hw.config import ConfigError
+from bruce_hw.yaml_reader import Bound, YamlReader, bound_lookup, read_yaml
 
 COMMAND_AXES = ("vx", "vy", "wz")
 COMMAND_UNITS = ("m/s", "m/s", "rad/s")
@@ -35,6 +36,7 @@ SCENARIO_BOUNDS = {  # docs/config_bounds.md
     **{f"segments[*].cmd.{axis}": Bound(*COMMAND_LIMITS[axis], unit, "the walking controllers' range")
        for axis, unit in zip(COMMAND_AXES, COMMAND_UNITS, strict=True)},
 }
+_scenario_bound = bound_lookup(SCENARIO_BOUNDS, "SCENARIO_BOUNDS")
 _SCENARIO_KEYS = {"segments", "ramp_s"}
 _SEGMENT_KEYS = {"duration", "cmd"}
 
@@ -90,17 +92,13 @@ class CommandSchedule:
     def from_yaml(cls, path: str | Path) -> CommandSchedule:
         """A scenario file; ConfigError naming the file, the segment and the problem when it is not usable."""
         path = Path(path)
-        tree = read_yaml(path, ConfigError, "scenario")
-        if not isinstance(tree, dict):
-            raise ConfigError(f"{path}: <top>: expected a mapping with {sorted(_SCENARIO_KEYS)}, got {tree!r}")
-        _check_keys(path, "", tree, _SCENARIO_KEYS, required={"segments"})
-        ramp_s = checked_number(path, "ramp_s", tree.get("ramp_s", DEFAULT_RAMP_S), SCENARIO_BOUNDS["ramp_s"])
-        raw_segments = tree["segments"]
-        if not isinstance(raw_segments, list) or not raw_segments:
-            raise ConfigError(f"{path}: segments: expected a non-empty list of {{duration, cmd}}, "
-                              f"got {raw_segments!r}")
-        return cls([_segment(path, i, raw) for i, raw in enumerate(raw_segments)], ramp_s,
-                   name=f"scenario {path}")
+        r = YamlReader(path, read_yaml(path, ConfigError, "scenario"), ConfigError, bounds=_scenario_bound)
+        top = r.mapping("", _SCENARIO_KEYS, required={"segments"})
+        ramp_s = r.number("ramp_s") if "ramp_s" in top else DEFAULT_RAMP_S
+        segments = top["segments"]
+        if not isinstance(segments, list) or not segments:
+            raise r.fail("segments", "a non-empty list of {duration, cmd}", segments)
+        return cls([_segment(r, f"segments[{i}]") for i in range(len(segments))], ramp_s, name=f"scenario {path}")
 
     def at(self, t: float) -> np.ndarray:
         """The command (vx, vy, wz) at t seconds since activation: 0 before 0 and after the schedule."""
@@ -112,29 +110,8 @@ class CommandSchedule:
         return self._values[i - 1] + self._slopes[i - 1] * (t - self._times[i - 1])
 
 
-def _segment(path: Path, index: int, raw) -> tuple[float, tuple[float, float, float]]:
-    where = f"segments[{index}]"
-    if not isinstance(raw, dict):
-        raise ConfigError(f"{path}: {where}: expected a mapping {{duration, cmd}}, got {raw!r}")
-    _check_keys(path, where + ".", raw, _SEGMENT_KEYS, required=_SEGMENT_KEYS)
-    duration = checked_number(path, f"{where}.duration", raw["duration"], SCENARIO_BOUNDS["segments[*].duration"])
-    cmd = raw["cmd"]
-    if not isinstance(cmd, list) or len(cmd) != len(COMMAND_AXES):
-        raise ConfigError(f"{path}: {where}.cmd: expected [vx, vy, wz] (3 numbers), got {cmd!r}")
-    for axis, v in zip(COMMAND_AXES, cmd, strict=True):
-        if isinstance(v, bool) or not isinstance(v, int | float):  # raises, naming the axis
-            checked_number(path, f"{where}.cmd.{axis}", v, SCENARIO_BOUNDS[f"segments[*].cmd.{axis}"])
-    problem = limit_violation(cmd)  # the same ranges, in the words `CommandSchedule.constant` uses; NaN fails too
-    if problem is not None:
-        raise ConfigError(f"{path}: {where}.cmd: {problem}")
+def _segment(r: YamlReader, key: str) -> tuple[float, tuple[float, float, float]]:
+    r.mapping(key, _SEGMENT_KEYS, required=_SEGMENT_KEYS)
+    duration = r.number(f"{key}.duration")
+    cmd = r.vector(f"{key}.cmd", len(COMMAND_AXES), axes=COMMAND_AXES)  # each inside COMMAND_LIMITS
     return duration, tuple(float(v) for v in cmd)
-
-
-def _check_keys(path: Path, prefix: str, tree: dict, allowed: set[str], required: set[str]) -> None:
-    unknown = sorted(str(k) for k in tree.keys() - allowed)
-    if unknown:
-        raise ConfigError(f"{path}: {prefix}{unknown[0]}: unknown key (expected one of {sorted(allowed)})")
-    missing = sorted(required - tree.keys())
-    if missing:
-        raise ConfigError(f"{path}: {prefix}{missing[0]}: missing key")
-

@@ -1,4 +1,29 @@
-"""`bruce-emulate`: BRUCE's devices emulated on this machine (BEAR bus, Dynamixel bus and sense board on
+"""`bruce-emulate` (`main`): BRUCE's devices emulated on this machine (`bruce_hw.emulated_plant.EmulatedRobot`),
+driven by the MuJoCo physics, so that `bruce-run --backend hw` runs end to end with no robot. It prints the device
+paths and the `bruce-run` line that uses them, takes fault commands on stdin and prints every emulator event as an
+`event t=<monotonic> <text>` line. `EmulatorProcess` runs it in a subprocess for tests and benchmarks. What it does
+and every option, as --help prints it: `DESCRIPTION`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import os
+import shlex
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
+from drivers.emulators.reply_delay import MAX_DELAY_S, check_delay
+
+PROG = "bruce-emulate"
+DESCRIPTION = """\
+`bruce-emulate`: BRUCE's devices emulated on this machine (BEAR bus, Dynamixel bus and sense board on
 pseudo-terminals, or CAN motors on python-can's virtual bus), driven by the MuJoCo physics at 1 kHz in real time,
 so that `bruce-run --backend hw` runs end to end with no robot.
 
@@ -46,25 +71,7 @@ CAN configs: python-can's `virtual` interface reaches only this process, so run 
 In one process the host, the four motor threads and the physics share one GIL and an emulated CAN round trip takes
 about a millisecond: that needs --set buses.can.timeout_s=0.005 and does not keep 1 kHz. Across processes,
 --can-interface socketcan on vcan channels (not tried here: this machine has no vcan).
-"""
-
-from __future__ import annotations
-
-import argparse
-import gc
-import json
-import os
-import shlex
-import signal
-import sys
-import threading
-import time
-from pathlib import Path
-
-from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
-from drivers.emulators.reply_delay import MAX_DELAY_S, check_delay
-
-PROG = "bruce-emulate"
+"""  # the --help text
 # The emulators' threads (pty servers, sense-board firmware, plant) answer within a fraction of a millisecond only
 # if none of them can hold the GIL for long (CPython's default: 5 ms). A pty thread woken by a request waits for the
 # GIL up to this long while another thread computes: at 0.5 ms the BEAR bulk cycle's p99 was 1-6 ms on a 2-core VM,
@@ -93,7 +100,8 @@ def _probability(text: str) -> float:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", default=DEFAULT_CONFIG, help="robot config YAML (default: %(default)s)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value by dotted key path (repeatable); passed on to bruce-run too")
@@ -318,7 +326,7 @@ def _commands(robot, stop: threading.Event) -> None:
 
 
 def execute(robot, words: list[str]) -> str:
-    """One fault command (see the module docstring); returns the reply line."""
+    """One fault command (listed in DESCRIPTION); returns the reply line."""
     verb, rest = words[0], words[1:]
     if verb in ("silence", "answer"):
         bus, ids = rest[0], [int(w) for w in rest[1:]]

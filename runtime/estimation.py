@@ -16,6 +16,7 @@ from typing import Protocol
 import numpy as np
 
 from bruce_hw.backend import Backend, BackendError
+from bruce_hw.quaternion import cos_tilt_of, euler_of, rotate_to_body, world_z_in_body
 from bruce_hw.types import ImuSample, RobotState
 
 
@@ -23,8 +24,7 @@ def world_up_in_body(imu: ImuSample) -> np.ndarray:
     """The world's z axis in the IMU frame (unit): from the orientation when the IMU has one, else from the
     accelerometer's specific force, which points up at rest."""
     if imu.orientation is not None:
-        w, x, y, z = imu.orientation
-        return np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
+        return np.array(world_z_in_body(imu.orientation))
     norm = float(np.linalg.norm(imu.accel))
     return imu.accel / norm if norm > 0 else np.array([0.0, 0.0, 1.0])
 
@@ -33,8 +33,7 @@ def cos_tilt(imu: ImuSample) -> float:
     """Cosine of the angle between the base's z axis and the world's: the z component of world_up_in_body, in
     scalar math because the safety stage evaluates it every tick."""
     if imu.orientation is not None:
-        _, x, y, _ = imu.orientation
-        return 1.0 - 2.0 * (x * x + y * y)
+        return cos_tilt_of(imu.orientation)
     a = imu.accel
     norm = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
     return a[2] / norm if norm > 0 else 1.0
@@ -43,30 +42,6 @@ def cos_tilt(imu: ImuSample) -> float:
 def tilt_angle(imu: ImuSample) -> float:
     """Angle between the base's z axis and the world's (rad)."""
     return math.acos(max(-1.0, min(1.0, float(cos_tilt(imu)))))
-
-
-def tilt_of(quat: np.ndarray) -> float:
-    """Angle between the z axis of a (w, x, y, z) orientation and the world's (rad)."""
-    w, x, y, z = quat
-    return math.acos(max(-1.0, min(1.0, 1.0 - 2.0 * (x * x + y * y))))
-
-
-def euler_of(quat: np.ndarray) -> np.ndarray:
-    """(roll, pitch, yaw), ZYX convention, of a (w, x, y, z) quaternion."""
-    w, x, y, z = quat
-    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return np.array([roll, pitch, yaw])
-
-
-def rotate_to_body(quat: np.ndarray, v_world: np.ndarray) -> np.ndarray:
-    """R(quat)^T v: a world vector in the body frame of a (w, x, y, z) body -> world quaternion."""
-    w, x, y, z = quat
-    r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                  [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                  [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-    return r.T @ v_world
 
 
 @dataclass(slots=True)

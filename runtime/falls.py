@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import math
 
+from bruce_hw.quaternion import tilt_of
 from bruce_hw.types import GroundTruth
-from runtime.estimation import tilt_of
 
 FALL_HEIGHT_FRACTION = 0.6   # fallen when the base is below this share of its nominal standing height
 FALL_TILT_RAD = math.pi / 4  # ... or the base is tilted more than this

@@ -1,17 +1,12 @@
-"""onnxruntime sessions for the 1 kHz loop: the walking policy (100 Hz) and the PINN (every tick).
+"""onnxruntime sessions for the 1 kHz loop: the walking policy (`OnnxPolicy`, 100 Hz) and the PINN (`OnnxPinn`,
+every tick).
 
-Tensor names are a contract with `training/export.py`: the policy maps `obs` [1, obs_dim] to `action`
+Tensor names are a contract with the exporters in `training/`: the policy maps `obs` [1, obs_dim] to `action`
 [1, n_joints]; the PINN maps `q`, `qd`, `tau` [1, n_joints] and its LSTM state `h`, `c` [layers, 1, hidden]
 to `q_next`, `qd_next`, `h_next`, `c_next`, all float32. A model is checked against that contract and the
 robot config when it loads, so a wrong file fails before the robot moves, naming the file, the tensor and
-the expected shape.
-
-Call path (measured: `bench/bench_pinn_step.py`): one intra-op
-thread, no thread pool, sequential execution, no spinning; inputs and outputs are bound once to fixed
-float32 buffers (OrtValues that share the numpy memory) and each tick calls `run_with_iobinding(io)` without
-RunOptions, which costs a few µs over the kernels, where passing RunOptions or `run_with_ort_values` add
-~30 µs in onnxruntime 1.31. The PINN's recurrent state ping-pongs between two bindings: step t writes
-h/c into the buffers that step t+1 reads, so nothing is copied.
+the expected shape. The PINN's recurrent state ping-pongs between two bindings: step t writes h/c into the buffers
+that step t+1 reads, so nothing is copied.
 """
 
 from __future__ import annotations
@@ -94,7 +89,10 @@ def check_signature(session: ort.InferenceSession, path: Path, what: str,
 
 
 class _Bound:
-    """Fixed float32 buffers bound to a session's inputs and outputs."""
+    """Fixed float32 buffers bound to a session's inputs and outputs (OrtValues that share the numpy memory), bound
+    once. Each tick calls `run_with_iobinding(io)` without RunOptions, a few µs over the kernels; passing RunOptions
+    or `run_with_ort_values` adds ~30 µs in onnxruntime 1.31 (measured: bench/bench_pinn_step.py). Sessions run with
+    one intra-op thread, no thread pool, sequential execution, no spinning (`session_options`)."""
 
     def __init__(self, session: ort.InferenceSession, buffers: dict[str, np.ndarray]):
         self.io = session.io_binding()

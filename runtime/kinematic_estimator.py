@@ -1,29 +1,14 @@
-"""The real robot's base state estimator: IMU attitude filter + leg-odometry Kalman filter on the base velocity.
+"""The real robot's base state estimator (`KinematicEstimator`): an IMU attitude filter and a leg-odometry Kalman
+filter on the base velocity, fed only what a real BRUCE measures (joints, the IMU's gyro and specific force, four
+toe/heel contact switches; the sense board gives no orientation).
 
-A real BRUCE measures joint angles and velocities, the IMU's gyro and specific force, and four toe/heel
-contact switches; the sense board gives no orientation, so none is used here.
-
-- Attitude: `bruce_hw.attitude.MahonyAttitude` (gyro integrated, roll and pitch pulled towards gravity's
-  direction, gyro bias learned; yaw starts at 0 on reset and is never corrected: nothing on the robot observes
-  heading). Gravity is the specific force less the base's own acceleration, the velocity filter's (below): its
-  slow part comes from the leg odometry, so the correction has no bias from walking's accelerations, and a
-  horizontal accelerometer bias goes into the tilt instead of the velocity. (The specific force's direction faded
-  by |a|, as `MahonyAttitude` does alone, kept some phases of the step and dropped others: walking at 0.4 m/s on
-  the mock its mean was 2.9 deg off in roll, and the estimate's roll error grew to 3.7 deg over 30 s; on the
-  truth's attitude 3 deg off in roll the policy fell at 5.7 s.) `estimate` carries the attitude forward over
-  the IMU's delay (IMU_DELAY_S).
-- Velocity: a Kalman filter on the base's linear velocity in the (yaw-relative) world frame. Prediction
-  integrates the accelerometer, v += (R a - g) dt, whose errors (tilt error times g, biases, impacts) grow the
-  variance; each foot with a contact switch closed is a measurement: a foot point touching the ground
-  is at rest, so the base moves at v = -R (J(q) qd + w x r), with r that point relative to the base and
-  J(q) qd its velocity relative to the base, both from the robot's own MJCF with the base held at the origin.
-  The point is the lowest point of the toe and/or heel sphere whose switch is closed: a line foot rolls on
-  them. A sphere whose switch has just closed (impact, compression, slip) is trusted less, by a standard
-  deviation that decays over ~50 ms (TOUCHDOWN_SPEED, TOUCHDOWN_TAU); a foot with both switches open is not
-  used, so in the air the velocity comes from the IMU alone.
-  The measurements and the accelerometer are taken isotropic, so the 3x3 covariance stays a multiple of the
-  identity: the filter is three scalar filters sharing one variance, which keeps the 1 kHz update in scalar
-  Python math.
+- Attitude: `bruce_hw.attitude.MahonyAttitude` on gravity = the specific force less the velocity filter's own
+  acceleration, whose slow part is the leg odometry's, so walking's accelerations do not bias the tilt; yaw starts
+  at 0 and is never corrected (nothing on the robot observes heading). `estimate` carries it over the IMU's delay.
+- Velocity, in the yaw-relative world frame: the accelerometer integrated, v += (R a - g) dt, and each toe or heel
+  sphere whose switch is closed a measurement: its lowest point is at rest, so the base moves at v = -R (J(q) qd +
+  w x r), from the robot's own MJCF with the base at the origin; a sphere that has just touched down counts less.
+  Isotropic noise keeps the covariance a multiple of the identity: three scalar filters, in scalar math at 1 kHz.
 """
 
 from __future__ import annotations
@@ -35,8 +20,9 @@ import numpy as np
 
 from bruce_hw.attitude import MAX_IMU_GAP_S, MahonyAttitude
 from bruce_hw.config import RobotConfig
+from bruce_hw.quaternion import euler_of, rotate_to_body, rotation_entries
 from bruce_hw.types import FOOT_CONTACT_NAMES, RobotState
-from runtime.estimation import BaseEstimate, euler_of, rotate_to_body
+from runtime.estimation import BaseEstimate
 
 # -- velocity Kalman filter ------------------------------------------------------------------------------
 # ODOMETRY_STD, m/s: one-sample (1 kHz) standard deviation of a leg-odometry velocity. Our assumption, not a
@@ -49,19 +35,15 @@ ODOMETRY_STD = 0.1
 # acceleration, which turns a horizontal accelerometer bias into tilt, so b is what is left: the vertical bias and
 # the tilt's residual error (0.1 deg ~ 0.017 m/s^2), ~0.02 m/s^2; the sum is smallest near tau = 140 ms, q = 0.0005
 # (one foot on the ground: 140 ms, both: 100 ms). The odometry's errors are not white either (a landing's tail, a
-# stance foot creeping, a sole compressing: tens of ms each), and tau averages them. Mock, 0.4 m/s, default reality
-# gap, control on the truth: velocity RMSE per axis x/y 0.025/0.031 m/s at q = 0.01 (tau 30 ms), 0.008/0.018 at
-# 0.0005; walking on the estimate (nominal mock, 30 s) at q = 0.01 the teacher fell at 7 and 11 s (0.4, 0, 0 and
-# 0.4, 0, 0.3) and the policy at 7 s (0.4, 0, 0.3); at 0.001 and 0.0005 none fell.
+# stance foot creeping, a sole compressing: tens of ms each), and tau averages them. Other values tried:
+# docs/walking.md.
 VELOCITY_RANDOM_WALK = 0.0005
 # A sphere whose switch has just closed is still moving: the foot lands with some speed, compresses, bounces and
 # slides before it settles. Its odometry's error, added in quadrature to ODOMETRY_STD, is taken as
 # TOUCHDOWN_SPEED e^(-t / TOUCHDOWN_TAU), t the time since that switch closed. Measured on the mock walking at
 # 0.4 m/s (the point's own speed, which is the odometry's error, by time since the heel closed): 1.1 m/s over the
 # first 10 ms, 0.38, 0.13, 0.045, 0.018 over the next 10 ms windows, and the toe sinks at ~0.2 m/s for ~20 ms after
-# it closes behind the heel. With a flat window instead (10x the standard deviation for 20 ms) the third
-# window's 0.13 m/s went in at full weight: walking on the estimate, its forward velocity was 0.010 m/s slow on
-# average (RMSE 0.013-0.015 m/s); with this decay, 0.002 (0.007).
+# it closes behind the heel: an exponential decay, since a flat window lets the tail in at full weight.
 TOUCHDOWN_SPEED = 2.0  # m/s
 TOUCHDOWN_TAU = 0.01   # s
 # m/s, standard deviation of the velocity at reset (the robot is at rest, up to sway).
@@ -71,11 +53,7 @@ RESET_VELOCITY_STD = 0.01
 # measured rate. On the robot, the ISM330DHCX's 5-sample average at 1.66 kHz (~1.2 ms of group delay) and the bulk
 # read's trip back through the FTDI latency timer (~1 ms; configs/gaps/default.yaml's sensor latency): ~2 ms. The
 # nominal mock's IMU is 1 ms old (it computes its sensors before the physics step whose time they carry), the
-# default gap's 2 ms. The walking policy is sensitive to this lag: walking at (0.4, 0, 0.3) on the truth's attitude
-# 1 ms late grew its pitch swing from 2.5 to 3.5 deg (std) over 30 s, and on the kinematic estimate without this
-# it fell at 14 s. With 2 ms (1 ms ahead on the nominal mock: pitch error 0.09 deg RMS) the policy and the teacher
-# walked 30 s at (0.4, 0, 0) and (0.4, 0, 0.3) on the nominal mock and on the default gap (seeds 0-2); with 1 ms the
-# teacher fell at 11.6 s at (0.4, 0, 0.3) on the default gap (seed 0).
+# default gap's 2 ms. The walking policy is sensitive to this lag (docs/walking.md).
 IMU_DELAY_S = 0.002
 
 FEET = (("r_toe", "r_heel"), ("l_toe", "l_heel"))  # per foot, its toe and heel contact/geom names
@@ -153,12 +131,10 @@ class KinematicEstimator:
         self.stamp = imu.stamp
         # The attitude's gravity measurement is the specific force less the base's acceleration, the last tick's
         # change of the velocity estimate (whose slow part is the leg odometry's, free of the attitude's error).
-        w, x, y, z = self.attitude.update(imu.gyro, imu.accel, imu.stamp, self.acceleration)
+        quat = self.attitude.update(imu.gyro, imu.accel, imu.stamp, self.acceleration)
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = rotation_entries(quat)
         gx, gy, gz = self.attitude.angvel  # bias removed
         ax, ay, az = imu.accel.tolist()
-        r00, r01, r02 = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
-        r10, r11, r12 = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
-        r20, r21, r22 = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
 
         # Velocity prediction from the specific force rotated to the world, gravity removed.
         px, py, pz = self.velocity

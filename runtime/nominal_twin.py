@@ -1,19 +1,14 @@
-"""A live nominal twin of the robot: the simulator's own closed loop, run beside the robot and resynchronised to it.
+"""A live nominal twin of the robot (`NominalTwin`): the simulator's own closed loop, run beside the robot and
+resynchronised to it.
 
-The twin is the nominal MuJoCo model driven by a second instance of the nominal controller (the configured walking
-policy) on the command the robot gets, with its own ground truth as its base estimate and its torques through its
-own safety stage (the simulator's torques went through one: the torque ramp and the rate limit shape them). Every
-`resync_ticks` it is set to the robot's state (the measured joints; the base from `base_state`, the mock's ground
-truth) and its controller takes the robot's target and action memory; between resyncs it rolls on by itself. So
-at each tick the twin shows what the simulator would have done from the robot's state at the last resync, under
-the same command history; the gait clock is a function of that history, so both controllers stay in phase. A user
-may ask for a resync out of turn (`resync_requested`, done at the next policy tick), e.g. after a push that the
-twin did not feel.
-
-Where the robot is the simulator (the `none` gap) the twin reproduces it to rounding; with a gap, the difference
-of the twin's joint posture and the robot's over a window of seconds is the posture offset that the gap causes
-and that no prediction over a few ticks sees (docs/transfer_twin_notes.md). Mock only: on a robot the full base
-state is not measured.
+The twin is the nominal MuJoCo model under a second instance of the nominal controller on the robot's command, with
+its own ground truth as its base estimate and its torques through its own safety stage (the simulator's went through
+one). Every `resync_ticks` it is set to the robot's state (measured joints; the base from `base_state`, the mock's
+ground truth) and its controller takes the robot's target and action memory; between resyncs it rolls on by itself,
+in phase (the gait clock is a function of the command history). `resync_requested` asks for one at the next policy
+tick, e.g. after a push the twin did not feel. Without a gap the twin reproduces the robot to rounding; with one,
+the posture offset between them over seconds is what no prediction over a few ticks sees
+(docs/transfer_twin_notes.md). Mock only: a robot does not measure its full base state.
 """
 
 from __future__ import annotations
@@ -24,8 +19,9 @@ import mujoco
 import numpy as np
 
 from bruce_hw.config import RobotConfig
+from bruce_hw.quaternion import euler_of, rotate_to_body
 from bruce_hw.types import FootContacts, GroundTruth, ImuSample, JointState, RobotState
-from runtime.estimation import BaseEstimate, euler_of, rotate_to_body
+from runtime.estimation import BaseEstimate
 from runtime.inference import ModelError
 from runtime.mixing import eq8_torque
 from runtime.reference_models import nominal_backend, set_state

@@ -21,9 +21,9 @@ import numpy as np
 
 from bruce_hw.backend import Backend
 from bruce_hw.config import RobotConfig
+from bruce_hw.quaternion import euler_of, world_z_in_body
 from bruce_hw.types import GroundTruth, RobotState
 from runtime.commands import COMMAND_AXES
-from runtime.estimation import euler_of
 from runtime.falls import has_fallen
 
 TRUTH_PHASE = 5              # the truth observers sample this tick of each policy period, not with the policy
@@ -93,12 +93,12 @@ class EachTick(TickObserver):
 # -- the ground truth of a run (mock) -----------------------------------------------------------------------
 def heading_velocity(truth: GroundTruth) -> np.ndarray:
     """(vx, vy, yaw rate) of the base: the linear velocity in the heading frame (yaw only), the world-z rate."""
-    w, x, y, z = truth.base_quat
     yaw = float(euler_of(truth.base_quat)[2])
     c, s = math.cos(yaw), math.sin(yaw)
     vx, vy, _ = truth.base_linvel
-    wx, wy, wz = truth.base_angvel  # base frame: the world z rate is the third row of R(quat) times it
-    yaw_rate = 2 * (x * z - w * y) * wx + 2 * (y * z + w * x) * wy + (1 - 2 * (x * x + y * y)) * wz
+    zx, zy, zz = world_z_in_body(truth.base_quat)
+    wx, wy, wz = truth.base_angvel  # base frame: the world z rate is the world's z axis in the base frame times it
+    yaw_rate = zx * wx + zy * wy + zz * wz
     return np.array([c * vx + s * vy, c * vy - s * vx, yaw_rate])
 
 

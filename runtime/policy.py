@@ -1,25 +1,8 @@
-"""The walking policy as the nominal controller: observation (paper Table I) -> ONNX -> a_t at 100 Hz.
+"""The walking policy as the nominal controller (`PolicyController`): observation (paper Table I) -> ONNX -> a_t at
+100 Hz.
 
-The observation is built here and only here, so training and the runtime cannot disagree on it. Layout, in
-order (SI units, joint arrays in the config's joint order, no normalisation: a policy folds its own into
-its graph):
-
-| slice            | dims | what                                                   |
-|------------------|------|--------------------------------------------------------|
-| clock            | 2    | sin, cos of the gait phase (2 pi t / C_T at a constant C_T; `GaitClock`) |
-| command          | 3    | commanded vx, vy (m/s, heading frame), yaw rate (rad/s), rate-limited (`GaitClock`) |
-| q                | n    | joint positions (rad)                                  |
-| qd               | n    | joint velocities (rad/s)                               |
-| base_linvel      | 3    | base linear velocity, base frame (m/s)                 |
-| base_angvel      | 3    | base angular velocity, base frame (rad/s)              |
-| euler            | 3    | base roll, pitch (rad); yaw minus the commanded heading (rad) |
-| last_action      | n    | a_{t-1} (rad)                                          |
-
-The third Euler entry is not the absolute yaw, which a policy cannot generalise over (walking does not depend on
-where north is), but the yaw's error to the heading the command asks for (`runtime.heading`), the state the
-walking teacher steers with: a student that sees it can learn the teacher's heading correction. The clock is
-the teacher's `GaitClock`, whose period follows the commanded forward speed. The builder keeps the reference and
-the clock, so it is built once per policy tick, in order, and reset at the start of a run.
+The observation is built here and only here (`ObservationBuilder`, layout `observation_layout`), so training and
+the runtime cannot disagree on it.
 """
 
 from __future__ import annotations
@@ -37,11 +20,31 @@ from runtime.walking.gait import GaitClock
 
 
 def observation_layout(n_joints: int) -> tuple[tuple[str, int], ...]:
+    """(name, width) in order; SI units, joint arrays in the config's joint order, no normalisation (a policy folds
+    its own into its graph):
+
+    | slice            | dims | what                                                   |
+    |------------------|------|--------------------------------------------------------|
+    | clock            | 2    | sin, cos of the gait phase (2 pi t / C_T at a constant C_T; `GaitClock`) |
+    | command          | 3    | commanded vx, vy (m/s, heading frame), yaw rate (rad/s), rate-limited (`GaitClock`) |
+    | q                | n    | joint positions (rad)                                  |
+    | qd               | n    | joint velocities (rad/s)                               |
+    | base_linvel      | 3    | base linear velocity, base frame (m/s)                 |
+    | base_angvel      | 3    | base angular velocity, base frame (rad/s)              |
+    | euler            | 3    | base roll, pitch (rad); yaw minus the commanded heading (rad) |
+    | last_action      | n    | a_{t-1} (rad)                                          |
+    """
     return (("clock", 2), ("command", 3), ("q", n_joints), ("qd", n_joints), ("base_linvel", 3),
             ("base_angvel", 3), ("euler", 3), ("last_action", n_joints))
 
 
 class ObservationBuilder:
+    """The third Euler entry is not the absolute yaw, which a policy cannot generalise over (walking does not depend
+    on where north is), but the yaw's error to the heading the command asks for (`runtime.heading`), the state the
+    walking teacher steers with: a student that sees it can learn the teacher's heading correction. The clock is the
+    teacher's `GaitClock`. The builder keeps the reference and the clock, so it is built once per policy tick, in
+    order, and reset at the start of a run."""
+
     def __init__(self, config: RobotConfig):
         self.slices: dict[str, slice] = {}
         start = 0

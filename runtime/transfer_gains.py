@@ -1,29 +1,11 @@
-"""Gains of the transfer schemes, derived from a stated delay margin instead of chosen by hand.
+"""Gains of the transfer schemes, derived from a stated delay margin instead of chosen by hand (docs/transfer.md,
+"Gains from a stated delay margin"; the sweep behind the margin: docs/transfer_schemes_notes.md).
 
-Each joint is treated as an inertia I (the smallest it shows: 1 / (M^-1)_jj of the nominal MJCF at the standing
-pose with the base free and no contact; contact and a moving body only make it larger, which lowers every
-crossover below, so the margins only grow). The loop around a scheme's feedback has a pure delay D (the state is
-read late, the torque acts late: `transfer.delay_margin_s`, stated with the robot), and we ask that a phase margin
-phi (`transfer.phase_margin_deg`) is left at crossover when the delay is D.
-
-PD towards a reference (shadow scheme), plant 1 / (I s^2), controller Kp + Kd s with its zero at a third of the
-crossover (Kp = Kd wc / 3, which gives the controller atan(3) = 71.6 deg of phase lead at wc):
-
-    phase margin = atan(3) - wc D   =>   wc = (atan(3) - phi) / D,   Kd = I wc,   Kp = I wc^2 / 3.
-
-Residual observer (an integrator of the one-step velocity residual r = qd_predicted - qd_measured, u += k r each
-tick): the residual responds to the observer's own torque as -dt / I, so the loop is u' = -(u + d) / T with
-k = I / T, a crossover at 1 / T and a phase margin of pi/2 - D / T:
-
-    T >= D / (pi/2 - phi)   (the shortest time constant the margin allows),   k = I / T  (N·m per rad/s, per tick).
-
-For BRUCE (I = 0.0046, 0.0120, 0.0113, 0.0041, 0.0018 kg·m² for hip yaw, hip pitch, hip roll, knee, ankle), the
-shipped D = 9 ms and phi = 45 deg: wc = 51.5 rad/s, Kd = 0.24, 0.62, 0.58, 0.21, 0.094 N·m·s/rad and Kp = 4.1,
-10.6, 10.0, 3.6, 1.6 N·m/rad. The paper's Eq. 9 gains (Kp' = 60, Kd' = 2; ankle 10, 1) sit 3-16x above: their
-crossover (~Kd' / I, 430-560 rad/s) leaves no phase beyond ~3 ms of loop delay. The PD above loses its last degree
-of margin at D = atan(3) / wc = 24 ms. The observer may not be faster than T = 11.5 ms; the shipped 200 ms stays
-stable up to D = (pi/2) T = 314 ms. 9 ms is the sweep's smallest margin (docs/transfer_schemes_notes.md) with which
-the shadow still walks, on every seed, through the 6 ms of actuator latency that direct transfer walks through.
+Each joint is an inertia I (`joint_inertia`); the loop around a scheme's feedback has a pure delay D
+(`transfer.delay_margin_s`) and must keep a phase margin phi (`transfer.phase_margin_deg`) at crossover.
+`pd_gains`: the shadow's PD on 1 / (I s^2) with its zero at a third of the crossover, wc = (atan(3) - phi) / D,
+Kd = I wc, Kp = I wc^2 / 3. `shortest_observer_time_constant` / `observer_gain`: the residual observer's loop
+u' = -(u + d) / T with gain k = I / T, margin pi/2 - D / T, so T >= D / (pi/2 - phi).
 """
 
 from __future__ import annotations
@@ -76,7 +58,7 @@ def pd_crossover(delay_s: float, phase_margin_deg: float) -> float:
 
 
 def pd_gains(inertia: np.ndarray, delay_s: float, phase_margin_deg: float) -> PdGains:
-    """Kp, Kd per joint for a PD towards a reference (module docstring)."""
+    """Kp, Kd per joint for a PD towards a reference: Kd = I wc, Kp = Kd wc / PD_ZERO_RATIO."""
     wc = pd_crossover(delay_s, phase_margin_deg)
     kd = inertia * wc
     return PdGains(kp=kd * wc / PD_ZERO_RATIO, kd=kd)

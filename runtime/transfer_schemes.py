@@ -1,36 +1,13 @@
-"""The transfer stage of the tick: after Eq. 8 (tau*), before safety. One interface, one scheme per `--transfer`.
+"""The transfer stage of the tick: after Eq. 8 (tau*), before safety. One interface, one scheme per `--transfer`
+(docs/transfer.md, "The schemes").
 
-A scheme gets the policy's targets a_t, the measured joint state and tau*, asks its reference model (a
-`runtime.reference_models.ReferenceModel`: the PINN, or the nominal MuJoCo model as the perfect-model control) what
-the simulator would do (`predict`: the model work, timed as the loop's `pinn` section) and returns the torque to
-send (`torque`: the mixing). Schemes:
-
-- `direct`: tau*, no model (Eq. 8 alone);
-- `eq9` (also `pinn`): the paper's Eq. 9, tau* + Kp' (q^' - q) + Kd' (qd^' - qd), (q^', qd^') the model's
-  prediction of the next tick from the measured state under tau*, gains `gains.eq9`. Its feedback is nearly
-  nothing: q^' - q ~ qd dt whatever the gap, so it mostly adds Kp' qd dt + Kd' (qd^' - qd);
-- `shadow`: a shadow of the simulator, rolled by the model from its own previous state under the simulator's own
-  Eq. 8 torque on the same a_t, resynchronised to the measured state every `transfer.shadow.resync_ticks`; a PD
-  (gains from the delay margin, `runtime.transfer_gains.pd_gains`) pulls the robot towards the shadow's state
-  at the same tick;
-- `observer`: a residual observer: the model's one-step prediction of qd under tau* is compared with the qd
-  measured a tick later, and a slow integrator of that residual (time constant `transfer.observer.time_constant_s`,
-  gain I / T) is added as torque, clipped to `transfer.observer.clip` x the joint's torque limit. It settles where
-  the robot under tau* + u moves as the model does under tau*: a disturbance observer whose nominal plant is
-  the reference model. Held at zero during the safety stage's torque ramp (the robot then gets less than tau*).
-  The PINN's own mean residual on the simulator (`pinn.residual_bias`, measured with the gap monitor on the
-  nominal mock) is taken off the residual: integrated, a model's bias becomes a posture offset on any robot.
-- `twin`, `shadow_twin`: direct transfer or the shadow, plus a slow integral of the robot's posture offset from
-  its live nominal twin (`runtime.nominal_twin`: the simulator's own closed loop, resynchronised to the robot's
-  measured joints and base state every `transfer.twin.resync_s`): u <- clip(u + Kp dt / T (q_twin - q), +- clip),
-  Kp the Eq. 8 stiffness, T = `transfer.twin.time_constant_s`, clip = `transfer.twin.clip` x the torque limit. It
-  sees the offsets that build over seconds (a static load, a turning gait's lean), which no prediction over a few
-  ticks does; where the robot is the simulator the twin is the robot and u stays 0. An offset above
-  `transfer.twin.disturbance_rad` on any joint is a disturbance the twin did not feel (a push): not integrated,
-  and the twin resynchronises at the next policy tick. Mock only: the twin needs the full base state.
-
-`one_step` is the model's prediction of the next tick's (q, qd) from this tick's measured state (None when the
-scheme made none this tick): the gap monitor's input (`runtime.gap_monitor`).
+A scheme (`build_scheme`) gets the policy's targets a_t, the measured joint state and tau*, asks its reference model
+(a `runtime.reference_models.ReferenceModel`: the PINN, or the nominal MuJoCo model as the perfect-model control)
+what the simulator would do (`predict`: the model work, timed as the loop's `pinn` section) and returns the torque
+to send (`torque`: the mixing). Schemes: `direct` (`TransferScheme`), `eq9` / `pinn` (`Eq9Scheme`), `shadow`
+(`ShadowScheme`), `observer` (`ObserverScheme`), `twin` and `shadow_twin` (`TwinScheme`). `one_step` is the model's
+prediction of the next tick's (q, qd) from this tick's measured state (None when the scheme made none this tick):
+the gap monitor's input (`runtime.gap_monitor`).
 """
 
 from __future__ import annotations
@@ -77,7 +54,9 @@ class TransferScheme:
 
 
 class Eq9Scheme(TransferScheme):
-    """The paper's Eq. 9 on the model's one-step (or look-ahead) prediction under tau*."""
+    """The paper's Eq. 9 on the model's one-step (or look-ahead) prediction under tau*: tau* + Kp' (q^' - q) +
+    Kd' (qd^' - qd), gains `gains.eq9`. Its feedback is nearly nothing: q^' - q ~ qd dt whatever the gap, so it
+    mostly adds Kp' qd dt + Kd' (qd^' - qd)."""
 
     name = "eq9"
 
@@ -95,7 +74,10 @@ class Eq9Scheme(TransferScheme):
 
 
 class ShadowScheme(TransferScheme):
-    """A PD towards the simulator's shadow, which the model rolls on from its own state between resynchronisations."""
+    """A PD towards the simulator's shadow at the same tick (gains from the delay margin,
+    `runtime.transfer_gains.pd_gains`). The model rolls the shadow on from its own previous state under the
+    simulator's own Eq. 8 torque on the same a_t, resynchronised to the measured state every
+    `transfer.shadow.resync_ticks`."""
 
     name = "shadow"
 
@@ -127,7 +109,12 @@ class ShadowScheme(TransferScheme):
 
 
 class ObserverScheme(TransferScheme):
-    """tau* + u, u a slow clipped integrator of the one-step velocity residual (model under tau* minus measured)."""
+    """tau* + u, u a slow clipped integrator of the one-step velocity residual (model under tau* minus measured),
+    gain I / T (T = `transfer.observer.time_constant_s`), clipped to `transfer.observer.clip` x the torque limit.
+    It settles where the robot under tau* + u moves as the model does under tau*: a disturbance observer whose
+    nominal plant is the reference model. Held at zero during the safety stage's torque ramp (the robot then gets
+    less than tau*); the model's own mean residual on the simulator (`pinn.residual_bias`) is taken off, since
+    integrated, a model's bias becomes a posture offset on any robot."""
 
     name = "observer"
 
@@ -158,7 +145,12 @@ class ObserverScheme(TransferScheme):
 
 
 class TwinScheme(TransferScheme):
-    """An inner scheme plus a slow clipped integral of the robot's posture offset from its nominal twin."""
+    """An inner scheme (direct or the shadow) plus a slow clipped integral of the robot's posture offset from its
+    live nominal twin (`runtime.nominal_twin`): u <- clip(u + Kp dt / T (q_twin - q), +- clip), Kp the Eq. 8
+    stiffness, T = `transfer.twin.time_constant_s`. It sees the offsets that build over seconds (a static load, a
+    turning gait's lean), which no prediction over a few ticks does; where the robot is the simulator, u stays 0.
+    An offset above `transfer.twin.disturbance_rad` is a push the twin did not feel: not integrated, and the twin
+    resynchronises. Mock only: the twin needs the full base state."""
 
     def __init__(self, inner: TransferScheme, twin: NominalTwin, gain: np.ndarray, clip: np.ndarray,
                  hold_ticks: int, disturbance: float = np.inf):

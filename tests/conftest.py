@@ -57,8 +57,8 @@ def stateful_pinn_onnx(tmp_path_factory):
     """The paper-sized PINN, random weights including the head, so its output depends on the LSTM state."""
     import torch
 
-    from training.export import export_pinn_onnx
-    from training.pinn import make_random_pinn
+    from training.dynamics.export import export_pinn_onnx
+    from training.dynamics.pinn import make_random_pinn
 
     model = make_random_pinn(seed=1)
     with torch.no_grad():
@@ -92,7 +92,7 @@ def nan_pinn_onnx(tmp_path_factory):
 @pytest.fixture(scope="session")
 def random_policy_onnx(tmp_path_factory):
     from runtime.policy import ObservationBuilder
-    from training.export import export_mlp_policy_onnx, make_random_policy
+    from training.onnx_export import export_mlp_policy_onnx, make_random_policy
 
     obs_dim = ObservationBuilder(load_config()).size
     return export_mlp_policy_onnx(make_random_policy(obs_dim, 10, seed=3),

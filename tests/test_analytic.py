@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from training.analytic import (
+from training.dynamics.analytic import (
     AnalyticConfig,
     AnalyticModel,
     ChainTensors,

@@ -155,7 +155,7 @@ def test_bad_scenario_is_named(tmp_path, capsys):
     scenario = tmp_path / "scenario.yaml"
     scenario.write_text("segments: [{duration: 1.0, cmd: [2.0, 0, 0]}]\n")
     assert main(["--scenario", str(scenario)]) == 2
-    assert f"{scenario}: segments[0].cmd: vx = 2 m/s is outside" in capsys.readouterr().err
+    assert f"{scenario}: segments[0].cmd.vx: expected a number in [-0.5, 1] m/s" in capsys.readouterr().err
 
 
 def test_scenario_sets_the_duration_and_the_summary_has_the_tracking(tmp_path, capsys):

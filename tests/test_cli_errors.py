@@ -9,15 +9,16 @@ from bruce_hw.hw_check import main as hw_check
 from runtime.cli import main as bruce_run
 from runtime.emulate_cli import main as bruce_emulate
 from training.collect import main as bruce_collect
-from training.eval_cli import main as bruce_eval
-from training.export import main as bruce_export
-from training.train_dynamics import main as bruce_train
+from training.dynamics.export import main as bruce_export
+from training.dynamics.train import main as bruce_train
+from training.evaluation.cli import main as bruce_eval
 
 CASES = [
     # (command, argv, what the last line must say)
     (bruce_run, ["--config", "nope.yaml"], "nope.yaml: robot config file not found"),
     (bruce_run, ["--gap", "nope", "--rerun", "off"], "unknown reality-gap profile 'nope'"),
     (bruce_run, ["--duration", "-1"], "argument --duration: expected a duration > 0 s, got -1"),
+    (bruce_run, ["--duration", "inf"], "argument --duration: expected a duration > 0 s, got inf"),
     (bruce_run, ["--set", "rates.loop_hz=7"], "rates.loop_hz"),
     (bruce_run, ["--cmd"], "argument --cmd: expected one argument"),
     (bruce_emulate, ["--config", "nope.yaml"], "nope.yaml: robot config file not found"),
@@ -27,6 +28,7 @@ CASES = [
     (bruce_collect, ["--seconds", "1", "--out", "x.npz", "--config", "nope.yaml"],
      "nope.yaml: robot config file not found"),
     (bruce_collect, ["--seconds", "-1", "--out", "x.npz"], "argument --seconds: expected a duration > 0 s"),
+    (bruce_collect, ["--seconds", "inf", "--out", "x.npz"], "argument --seconds: expected a duration > 0 s, got inf"),
     (bruce_collect, [], "the following arguments are required: --out"),
     (bruce_train, ["--data", "nope.npz", "--model", "pinn", "--out", "x.pt"], "nope.npz: dataset file not found"),
     (bruce_train, ["--data", "x.npz", "--model", "nope", "--out", "x.pt"], "argument --model: invalid choice: 'nope'"),

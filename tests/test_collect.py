@@ -8,7 +8,8 @@ import pytest
 from bruce_hw.mock import MujocoBackend
 from runtime.commands import COMMAND_AXES
 from training.collect import POLICY_CLIP, SAMPLE_BOX, CollectError, CollectSettings, collect, main
-from training.dataset import config_hash, load_dataset, transition_indices
+from training.dataset import config_hash, load_dataset
+from training.episodes import transition_indices
 
 SHORT = CollectSettings(seconds=3.0, seed=3, segment_s=1.0)
 
@@ -136,7 +137,7 @@ def test_a_fall_ends_the_episode_and_drops_its_tail(config):
     assert episodes[0]["samples"] == fell_at - trim - warmup > 0
     first, second = episodes[0]["samples"], episodes[1]["first_index"]
     assert first == second and list(np.unique(data.episode)) == list(range(len(episodes)))
-    assert first - 1 not in transition_indices(data)  # no transition from the fall into the next episode
+    assert first - 1 not in transition_indices(data.episode)  # no transition from the fall into the next episode
     # The new episode starts from the standing robot again, exactly as the first did.
     np.testing.assert_array_equal(data.q[second], data.q[0])
     assert len(mocks) == len(episodes)

@@ -118,11 +118,11 @@ def test_example_scenario_walks_then_turns():
     ("segments: [{duration: 1.0, cmd: [0.4, fast, 0]}]", "segments[0].cmd.vy: expected a number in [-0.3, 0.3] m/s"),
     ("segments: [{duration: 1.0, cmd: [true, 0, 0]}]", "segments[0].cmd.vx: expected a number in [-0.5, 1] m/s"),
     ("segments: [{duration: 1.0, cmd: [0, 0, 0]}, {duration: 1.0, cmd: [1.2, 0, 0]}]",
-     "segments[1].cmd: vx = 1.2 m/s is outside the supported range [-0.5, 1] m/s"),
+     "segments[1].cmd.vx: expected a number in [-0.5, 1] m/s (the walking controllers' range), got 1.2"),
     ("segments: [{duration: 1.0, cmd: [0, 0, -0.6]}]",
-     "segments[0].cmd: wz = -0.6 rad/s is outside the supported range [-0.5, 0.5] rad/s"),
+     "segments[0].cmd.wz: expected a number in [-0.5, 0.5] rad/s (the walking controllers' range), got -0.6"),
     ("segments: [{duration: 1.0, cmd: [0, .nan, 0]}]",
-     "segments[0].cmd: vy = nan m/s is outside the supported range [-0.3, 0.3] m/s"),
+     "segments[0].cmd.vy: expected a number in [-0.3, 0.3] m/s (the walking controllers' range), got nan"),
     ("segments: [{duration: 1.0, cmd: [0, 0, 0]]", "not valid YAML"),
 ])
 def test_scenario_errors_name_the_file_the_segment_and_the_problem(tmp_path, text, problem):

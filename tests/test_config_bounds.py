@@ -18,15 +18,16 @@ from hypothesis import strategies as st
 
 from bruce_hw.config import (
     BOUNDS,
-    Bound,
     ConfigError,
-    apply_overrides,
+    SafetyConfig,
+    TransferConfig,
     bound_for,
     load_config,
     parse_config,
     resolve_config_path,
 )
 from bruce_hw.reality_gap import GAP_BOUNDS, GapError, load_gap, profile_names
+from bruce_hw.yaml_reader import Bound, apply_overrides
 from runtime.commands import SCENARIO_BOUNDS, CommandSchedule
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -270,11 +271,24 @@ def test_the_doc_lists_every_bound_with_its_range():
             assert row in doc, row
 
 
+@pytest.mark.parametrize("section, dataclass_", [("safety", SafetyConfig), ("transfer", TransferConfig)])
+def test_the_safety_and_transfer_keys_are_the_bounds_table_s(config, section, dataclass_):
+    """BOUNDS lists the keys of these sections once: "SECTION.a.b" is field a_b, and a value set there lands in it."""
+    keys = [key for key in BOUNDS if key.startswith(f"{section}.")]
+    numeric = {f.name for f in dataclasses.fields(dataclass_)} - {"scheme", "reference_model"}
+    assert {key.removeprefix(f"{section}.").replace(".", "_") for key in keys} == numeric
+    for key in keys:
+        field = key.removeprefix(f"{section}.").replace(".", "_")
+        shipped = getattr(getattr(config, section), field)
+        value = shipped + 1 if isinstance(shipped, int) else round(shipped * 1.01, 9)
+        assert getattr(getattr(load_config(overrides=[f"{key}={value}"]), section), field) == value, key
+
+
 # -- property: whatever a leaf is set to, the loader refuses it by name or the config is inside every bound --------
 def set_leaf(tree: dict, key: str, value, path: Path) -> dict:
     """`tree` with the leaf at `key` set: through `--set` for mapping keys, directly for list entries."""
     if "[" not in key:
-        return apply_overrides(tree, [f"{key}={yaml.safe_dump(value)}"], path)
+        return apply_overrides(tree, [f"{key}={yaml.safe_dump(value)}"], path, ConfigError)
     tree = copy.deepcopy(tree)
     parts = re.findall(r"[^.\[\]]+|\[\d+\]", key)
     node = tree

@@ -15,13 +15,12 @@ from training.dataset import (
     DatasetStats,
     compute_stats,
     config_hash,
-    episode_ranges,
     load_dataset,
     save_dataset,
     split_by_time,
-    transition_indices,
     windows,
 )
+from training.episodes import episode_runs, transition_indices
 
 DT = 1e-3
 
@@ -137,8 +136,8 @@ def test_the_split_is_contiguous_and_uses_no_transition_across_a_boundary():
     assert train.span == (0, 80) and test.span == (80, 100) and len(train) + len(test) == len(data)
     np.testing.assert_array_equal(train.q, data.q[:80])
     np.testing.assert_array_equal(test.tau, data.tau[80:])
-    used = set((transition_indices(train) + train.span[0]).tolist()) | set(
-        (transition_indices(test) + test.span[0]).tolist())
+    used = set((transition_indices(train.episode) + train.span[0]).tolist()) | set(
+        (transition_indices(test.episode) + test.span[0]).tolist())
     every = set(range(99)) - {36, 86}  # 36 -> 37 and 86 -> 87 cross episodes
     assert used == every - {79}  # 79 -> 80 crosses the split
     assert "train: samples 0..80" in train.source and "test: samples 80..100" in test.source
@@ -221,7 +220,7 @@ def test_windows_with_another_stride_or_an_offset():
 def test_windows_never_cross_an_episode_and_streams_carry_only_continuations(lengths, length, offset, n_streams):
     data = synthetic(lengths, n=1)
     w = windows(data, length, offset=offset % length)
-    ranges = episode_ranges(data)
+    ranges = episode_runs(data.episode)
     expected = sum(len(range(begin + offset % length, end - length, length)) for begin, end in ranges)
     assert len(w) == expected
     for i, start in enumerate(w.start):

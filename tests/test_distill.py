@@ -39,7 +39,7 @@ def test_teacher_rollout_is_labelled_at_the_policy_rate(config):
 
 
 def test_a_small_distillation_exports_the_student(config, tmp_path):
-    from training.export import export_mlp_policy_onnx
+    from training.onnx_export import export_mlp_policy_onnx
 
     settings = DistillSettings(rounds=1, episodes_per_round=2, episode_s=1.0, epochs=2, hidden=(32, 32))
     student, history = distill(config, settings, log=lambda *_: None)

@@ -1,5 +1,6 @@
-"""`bruce-eval dynamics` (training/evaluate.py): NMSE definitions against hand-computed values, start points and
-transitions that never cross a run, the oracle, checkpoints, and the CLI end to end on a tiny synthetic file."""
+"""`bruce-eval dynamics` (training/evaluation/dynamics_eval.py): NMSE definitions against hand-computed values, start
+points and transitions that never cross a run, the oracle, checkpoints, and the CLI end to end on a tiny synthetic
+file."""
 
 from __future__ import annotations
 
@@ -14,23 +15,23 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from torch import nn
 
-from training import checkpoint, eval_report, evaluate
 from training.dataset import Dataset, config_hash, save_dataset, split_by_time
-from training.eval_cli import main as eval_main
-from training.evaluate import (
+from training.dynamics import checkpoint
+from training.dynamics.pinn import PinnConfig, make_random_pinn
+from training.episodes import episode_runs, run_indices
+from training.evaluation import dynamics_eval as evaluate
+from training.evaluation import report as eval_report
+from training.evaluation.cli import main as eval_main
+from training.evaluation.dynamics_eval import (
     EvalError,
     Protocol,
     bounded_check,
-    eligible_starts,
-    episode_runs,
     evaluate_model,
     json_safe,
     load_eval_data,
     nmse_per_joint,
-    scored_transitions,
     select_start_points,
 )
-from training.pinn import PinnConfig, make_random_pinn
 
 N = 10
 DT = 1e-3
@@ -122,7 +123,7 @@ def data(tmp_path, config):
 
 def make_protocol(data, ks=(5, 20, 50), warmup=10, count=12, chunk=64) -> Protocol:
     starts = select_start_points(data.runs, warmup, max(ks), count)
-    return Protocol(tuple(ks), warmup, starts, scored_transitions(data.runs, warmup), chunk)
+    return Protocol(tuple(ks), warmup, starts, run_indices(data.runs, before=warmup), chunk)
 
 
 # -- NMSE, hand-computed ---------------------------------------------------------------------------------------
@@ -213,7 +214,7 @@ def test_start_points_and_scored_transitions_never_cross_an_episode_or_the_split
     episode = np.repeat(np.arange(len(lengths)), lengths)
     test_start = min(test_start, episode.size)
     runs = episode_runs(episode, test_start, episode.size)
-    eligible = eligible_starts(runs, warmup, horizon)
+    eligible = run_indices(runs, before=warmup, after=horizon)
     for s in eligible:
         window = np.arange(s - warmup, s + horizon + 1)
         assert window[0] >= test_start and window[-1] < episode.size
@@ -221,7 +222,7 @@ def test_start_points_and_scored_transitions_never_cross_an_episode_or_the_split
     brute = [s for s in range(test_start + warmup, episode.size - horizon)
              if np.all(episode[s - warmup:s + horizon + 1] == episode[s])]
     assert eligible.tolist() == brute  # and none is missed
-    for t in scored_transitions(runs, warmup):
+    for t in run_indices(runs, before=warmup):
         assert t - warmup >= test_start and episode[t - warmup] == episode[t] == episode[t + 1]
     if eligible.size == 0:
         with pytest.raises(EvalError, match="no start point"):
@@ -323,7 +324,7 @@ def test_the_cli_writes_json_markdown_and_figures(tmp_path, monkeypatch, capsys,
     # the CLI's numbers are the library's on the same protocol
     data = load_eval_data(data_path, config)
     protocol = Protocol((5, 20, 50), 10, np.array(report["protocol"]["start_points"]),
-                        scored_transitions(data.runs, 10), 64)
+                        run_indices(data.runs, before=10), 64)
     direct, _ = evaluate_model(EulerModel(), data, protocol)
     assert euler["per_checkpoint"][0]["k_step"]["50"]["qd"] == pytest.approx(direct["k_step"]["50"]["qd"])
     assert euler["per_checkpoint"][0]["one_step"]["q"] == pytest.approx(direct["one_step"]["q"])

@@ -6,8 +6,8 @@ import torch
 
 from runtime.inference import OnnxPinn
 from training.dataset import DatasetStats
-from training.export import export_pinn_onnx
-from training.lstm_baseline import LstmConfig, LstmStep
+from training.dynamics.export import export_pinn_onnx
+from training.dynamics.lstm_baseline import LstmConfig, LstmStep
 
 N = 10
 

@@ -1,5 +1,5 @@
-"""The OLNN baseline (training/olnn.py): structure of M, physics of the step, analytic vs autograd derivatives, RK4,
-ONNX export parity, and that it trains."""
+"""The OLNN baseline (training/dynamics/olnn.py): structure of M, physics of the step, analytic vs autograd
+derivatives, RK4, ONNX export parity, and that it trains."""
 
 import json
 import math
@@ -10,8 +10,7 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from training.export import sidecar_path
-from training.olnn import (
+from training.dynamics.olnn import (
     OlnnConfig,
     OlnnStep,
     export_olnn_onnx,
@@ -19,6 +18,7 @@ from training.olnn import (
     rk4_step,
     unit_lower_inverse_factors,
 )
+from training.onnx_export import sidecar_path
 
 N = 10
 SMALL = OlnnConfig(mass_widths=(16, 16), potential_widths=(8, 8), force_widths=(24, 24))

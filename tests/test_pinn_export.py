@@ -10,15 +10,9 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from training.export import (
-    ExportError,
-    _export_checked,
-    export_mlp_policy_onnx,
-    export_pinn_onnx,
-    make_random_policy,
-    sidecar_path,
-)
-from training.pinn import PinnConfig, PinnStep, make_random_pinn, tril_placement
+from training.dynamics.export import export_pinn_onnx
+from training.dynamics.pinn import PinnConfig, PinnStep, make_random_pinn, tril_placement
+from training.onnx_export import ExportError, export_checked, export_mlp_policy_onnx, make_random_policy, sidecar_path
 
 N = 10
 PINN_IO = (["q", "qd", "tau", "h", "c"], ["q_next", "qd_next", "h_next", "c_next"])
@@ -298,8 +292,8 @@ def test_export_checks_lstm_node_count(tmp_path):
     model = make_random_pinn()
     example = (torch.zeros(1, N), torch.zeros(1, N), torch.zeros(1, N), *model.initial_state(1))
     with pytest.raises(ExportError, match="exactly 2 LSTM"):
-        _export_checked(model, example, tmp_path / "bad.onnx", input_names=PINN_IO[0], output_names=PINN_IO[1],
-                        opset=17, op_counts={"LSTM": 2}, metadata={})
+        export_checked(model, example, tmp_path / "bad.onnx", input_names=PINN_IO[0], output_names=PINN_IO[1],
+                       opset=17, op_counts={"LSTM": 2}, metadata={})
 
 
 def test_policy_export_names_shapes_and_parity(tmp_path):
@@ -352,7 +346,7 @@ def test_rollout_parity_holds_for_the_export_and_catches_a_different_model(expor
     carried state and the small head, and in M^-1)."""
     import copy
 
-    from training.export import rollout_parity, smooth_inputs
+    from training.dynamics.export import rollout_parity, smooth_inputs
 
     model, path = exported_pinn
     inputs = smooth_inputs(N, model.dt)

@@ -6,7 +6,8 @@ import pytest
 from bruce_hw.backend import BackendError
 from bruce_hw.echo import EchoBackend
 from bruce_hw.mock import MujocoBackend
-from runtime.estimation import BaseEstimate, GroundTruthEstimator, euler_of, rotate_to_body
+from bruce_hw.quaternion import euler_of, rotate_to_body
+from runtime.estimation import BaseEstimate, GroundTruthEstimator
 from runtime.policy import ObservationBuilder
 from runtime.walking.gait import COMMAND_ACCELERATION, gait_period
 

@@ -320,7 +320,7 @@ def test_default_profile_has_the_documented_values(config):
     ("actuator:\n  latency_s: 0.2\n", "), got 0.2"),
     ("actuator:\n  time_constant_s: 1.0\n", "actuator.time_constant_s: expected a number in [0, 0.05] s"),
     ("actuator:\n  latncy_s: 0.001\n", "actuator.latncy_s: unknown key (expected one of ['latency_s',"),
-    ("actuators:\n  latency_s: 0.001\n", "actuators: unknown key (expected seed or one of ['actuator',"),
+    ("actuators:\n  latency_s: 0.001\n", "actuators: unknown key (expected one of ['actuator', 'encoder',"),
     ("actuator:\n  torque_limit_scale: 1.2\n", "actuator.torque_limit_scale: expected a number in [0.5, 1] ("),
     ("actuator:\n  torque_scale: 1.6\n", "actuator.torque_scale: expected a number in [0.5, 1.5] ("),
     ("actuator:\n  torque_scale: {r_knee: 0.2}\n", "actuator.torque_scale.r_knee: expected a number in [0.5, 1.5]"),
@@ -331,12 +331,12 @@ def test_default_profile_has_the_documented_values(config):
     ("friction:\n  coulomb: {r_knee: -0.1}\n", "friction.coulomb.r_knee: expected a number in [0, 1] N·m ("),
     ("friction:\n  viscous: .inf\n", "friction.viscous: expected a number in [0, 0.5] N·m·s/rad"),
     ("friction:\n  coulomb: {r_kne: 0.1}\n", "friction.coulomb.r_kne: unknown joint (expected one of"),
-    ("friction: 0.1\n", "friction: expected a mapping, got 0.1"),
+    ("friction: 0.1\n", "friction: expected a mapping with keys among ['coulomb', 'viscous'], got 0.1"),
     ("encoder:\n  q_noise: abc\n", "encoder.q_noise: expected a number in [0, 0.05] rad (3 deg std) or a mapping "
                                    "joint name -> number, got 'abc'"),
     ("encoder:\n  q_bias: {r_knee: 0.5}\n", "encoder.q_bias.r_knee: expected a number in [-0.1, 0.1] rad"),
     ("encoder:\n  q_noise: 1e-3\n", "(YAML reads 1e-3 as text: write 1.0e-3)"),
-    ("imu:\n  gyro_bias: [0.1, 0.2]\n", "imu.gyro_bias: expected 3 numbers (x, y, z), got 2"),
+    ("imu:\n  gyro_bias: [0.1, 0.2]\n", "imu.gyro_bias: expected a list of 3 numbers, got 2 entries"),
     ("imu:\n  gyro_bias: [0.1, .nan, 0.0]\n", "imu.gyro_bias[1]: expected a number in [-0.5, 0.5] rad/s"),
     ("imu:\n  gyro_noise: -0.01\n", "imu.gyro_noise: expected a number in [0, 0.5] rad/s (std per axis), got -0.01"),
     ("imu:\n  accel_bias: 9.81\n", "imu.accel_bias: expected a number in [-2, 2] m/s²"),
@@ -344,7 +344,8 @@ def test_default_profile_has_the_documented_values(config):
     ("sensor:\n  latency_s: .nan\n", "sensor.latency_s: expected a number in [0, 0.05] s"),
     ("sensor:\n  latency_s: 1.0e+9\n", "sensor.latency_s: expected a number in [0, 0.05] s"),
     ("seed: -1\n", "seed: expected an integer >= 0, got -1"),
-    ("- 1\n", "<top>: expected a mapping of seed and sections"),
+    ("- 1\n", "<top>: expected a mapping with keys among ['actuator', 'encoder', 'friction', 'imu', 'inertia', "
+              "'seed', 'sensor'], got [1]"),
 ])
 def test_bad_profile_names_the_file_and_the_key(config, tmp_path, text, message):
     path = tmp_path / "foo.yaml"

@@ -7,12 +7,12 @@ import pytest
 import torch
 
 from bruce_hw.config import load_config
-from training import train_dynamics
-from training.checkpoint import CheckpointError, load_model_checkpoint, read_checkpoint
 from training.collect import CollectSettings, collect
 from training.dataset import DatasetStats, save_dataset
-from training.pinn import joint_stop_range
-from training.train_dynamics import MODEL_PRESETS, TRAIN_PRESETS, Eq7Loss, TrainConfig, main, train
+from training.dynamics import train as train_dynamics
+from training.dynamics.checkpoint import CheckpointError, load_model_checkpoint, read_checkpoint
+from training.dynamics.pinn import joint_stop_range
+from training.dynamics.train import MODEL_PRESETS, TRAIN_PRESETS, Eq7Loss, TrainConfig, main, train
 
 N = 10
 
@@ -160,7 +160,7 @@ def test_the_analytic_baseline_is_identified_not_trained(walk_data, tmp_path):
 def test_export_cli_writes_onnx_with_parity_and_the_commands_that_regenerate_it(walk_data, tmp_path):
     import json
 
-    from training.export import main as export_main
+    from training.dynamics.export import main as export_main
 
     path, _ = walk_data
     checkpoint = tmp_path / "p.pt"
@@ -180,8 +180,8 @@ def test_export_cli_writes_onnx_with_parity_and_the_commands_that_regenerate_it(
     (["bruce-export", "--checkpoint", "NOT_A_CHECKPOINT", "--out", "x.onnx"], "not a torch checkpoint"),
 ])
 def test_training_clis_answer_a_bad_file_in_one_line(argv, says, tmp_path, monkeypatch, capsys):
-    from training.export import main as export_main
-    from training.train_dynamics import main as train_main
+    from training.dynamics.export import main as export_main
+    from training.dynamics.train import main as train_main
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "NOT_A_CHECKPOINT").write_text("robot\n")

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from bruce_hw.reality_gap import load_gap
-from training import transfer_eval
-from training.eval_cli import main as eval_main
-from training.transfer_cache import spec_key
-from training.transfer_eval import (
+from training.evaluation import transfer_eval
+from training.evaluation.cli import main as eval_main
+from training.evaluation.transfer_cache import spec_key
+from training.evaluation.transfer_eval import (
     EXPERIMENTS,
     RunRecord,
     RunSpec,
@@ -280,7 +280,7 @@ def test_bruce_eval_transfer_runs_without_torch_or_matplotlib(tmp_path):
     import sys
 
     code = ("import sys; sys.modules['torch'] = None; sys.modules['matplotlib'] = None\n"
-            "from training.eval_cli import main\n"
+            "from training.evaluation.cli import main\n"
             f"raise SystemExit(main(['transfer', '--gap', 'default', '--out', {str(tmp_path)!r}, '--seconds', '2.5', "
             "'--seeds', '0', '--experiments', 'tracking', '--latencies-ms', '', '--gain-scales', '', "
             "'--schemes', 'direct', '--jobs', '1']))")

@@ -4,9 +4,9 @@ import json
 
 import pytest
 
-from training.eval_cli import main as eval_main
-from training.transfer_acceptance import acceptance, latency_tolerance, recommended
-from training.transfer_eval import mode_label, scheme_of
+from training.evaluation.cli import main as eval_main
+from training.evaluation.transfer_acceptance import acceptance, latency_tolerance, recommended
+from training.evaluation.transfer_eval import mode_label, scheme_of
 
 
 def test_modes_name_a_scheme_and_optionally_the_perfect_model():

@@ -2,37 +2,11 @@
 
     bruce-collect --seconds 90 --seed 0 --out data/walk_90s.npz [--config PATH] [--segment-s 3.0] [--policy PATH]
 
-The committed walking policy (`policy.model` of the config, or --policy) walks the nominal MuJoCo mock through
-the runtime's own session loop (`runtime.run.run_session`: the same read -> policy -> Eq. 8 -> safety ->
-write ticks as `bruce-run --backend mock`, transfer direct, ground-truth base state, unpaced), and a recorder
-observing that loop (`runtime.observers`) keeps every 1 kHz tick:
-
-- `q`, `qd`: the joint state read at the tick; `tau`: the torque written at the tick, i.e. what the safety stage
-  returned, which the mock's motors apply over the next physics step (they saturate it again by actuator and
-  joint limits, which the safety stage already enforces, so it is applied unchanged). Sample t + 1 is therefore
-  the state reached from sample t under `tau[t]`.
-- Velocity commands (vx, vy, yaw rate; heading frame) are drawn uniformly from the paper's box
-  (-0.5, 1.0) m/s x (-0.5, 0.5) m/s x (-0.5, 0.5) rad/s and clipped to what the policy was distilled on
-  (`training.distill`: vx [-0.5, 0.8] m/s, vy [-0.2, 0.2] m/s, wz [-0.5, 0.5] rad/s; so vx = 0.8 for 13 % of
-  the segments and |vy| = 0.2 for 60 %). Each is held for `--segment-s` (default 3 s) and reached by the
-  runtime's 0.5 s linear ramp from the one before (`runtime.commands.CommandSchedule`).
-- Episodes: each starts a fresh mock (standing pose, at rest) and a standstill command for the warm-up,
-  `safety.soft_start_s` (1.5 s): the torque ramp and the settling from the placed pose are run but NOT
-  recorded, so an episode's first sample is the robot standing under the running controller, and the first
-  sampled command starts there. A fall (`runtime.falls`, the one definition every evaluation uses: base below
-  0.6 x its nominal standing height, or tilted over 45 deg, from the simulator's truth; checked every tick here)
-  ends the episode: its last 0.5 s before
-  the fall is dropped, and a new episode starts. Episodes run until `--seconds` of samples are kept, so the
-  file holds exactly round(seconds x loop_hz) samples.
-
-The file is `training.dataset`'s format: `q`, `qd`, `tau` float64 [T, 10], `episode` int64 [T], `dt`, and
-`metadata` (JSON): format_version, joint_names, config_hash (`training.dataset.config_hash`), config path, seed,
-seconds, samples, dt, units, the command box and clip, segment_s, ramp_s, warmup_s, fall test and trim, the
-policy file and its SHA-256, package version, command line, creation date (UTC, the only field that differs
-between two runs with the same seed), per-episode records (first_index, samples, end: "duration" or the fall or
-safety cause, simulated_s, base_xy_start/end at the first and last kept sample) and per-segment records
-(episode, first_index, t_s since the episode's first kept sample, sampled and clipped command). The same seed
-gives the same arrays and metadata (the simulation and the policy run on one thread, deterministically).
+The walking policy walks the nominal mock through the runtime's own session loop (`runtime.run.run_session`, the
+ticks of `bruce-run --backend mock`: Eq. 8, safety, transfer direct, ground-truth base state, unpaced) under sampled
+velocity commands, and an observer of that loop (`EpisodeRecorder`) keeps q, qd and the written torque of every
+tick. An episode starts standing after an unrecorded warm-up and ends at a fall, whose last `fall_trim_s` is
+dropped. The same seed gives the same arrays and metadata. The commands, episodes and file: docs/dynamics.md.
 """
 
 from __future__ import annotations
@@ -54,6 +28,7 @@ import numpy as np
 from bruce_hw.backend import BackendError
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, RobotConfig, load_config
 from bruce_hw.mock import MujocoBackend
+from runtime.cli import positive_seconds
 from runtime.commands import COMMAND_AXES, COMMAND_LIMITS, CommandSchedule
 from runtime.controllers import build_controller
 from runtime.falls import fall_rule
@@ -157,7 +132,7 @@ class Progress:
 def collect(config: RobotConfig, settings: CollectSettings, *, policy: Path | None = None,
             backend_factory: Callable[[RobotConfig], MujocoBackend] = MujocoBackend, progress: bool = False,
             command_line: str | None = None) -> Dataset:
-    """Roll the walking policy out in the mock until `settings.seconds` of samples are kept (module docstring).
+    """Roll the walking policy out in the mock until `settings.seconds` of samples are kept (docs/dynamics.md).
 
     `backend_factory(config)` makes each episode's mock (tests pass one that pushes or spies)."""
     policy_path = policy or config.models.policy
@@ -268,17 +243,9 @@ def _episode_commands(rng: np.random.Generator, seconds: float, warmup_s: float,
     return CommandSchedule(timed, settings.ramp_s, name="sampled commands"), drawn
 
 
-def positive_seconds(text: str) -> float:
-    value = float(text)
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"expected a duration > 0 s, got {text}")
-    return value
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bruce-collect", description=__doc__.split("\n\n")[0],
-                                epilog="Format and conventions: python -c 'import training.collect as c; "
-                                       "print(c.__doc__)'")
+                                epilog="Commands, episodes and the file's format: docs/dynamics.md")
     defaults = CollectSettings()
     p.add_argument("--seconds", type=positive_seconds, default=defaults.seconds, metavar="S",
                    help="simulated seconds of samples to keep (default: %(default)g, as the paper)")

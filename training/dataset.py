@@ -1,31 +1,10 @@
-"""Joint-state datasets from the simulator: the on-disk format, its checks, the time split, statistics, windows.
+"""Joint-state datasets from the simulator: the `.npz` file (`save_dataset`, and `load_dataset`, which checks it
+against the robot config), `config_hash`, the time split, statistics and windows for truncated back-propagation.
 
-A dataset is an `.npz` (written by `save_dataset`, e.g. through `bruce-collect`; numpy arrays, no pickles):
-
-| array      | shape, dtype        | what                                                                     |
-|------------|---------------------|--------------------------------------------------------------------------|
-| `q`        | [T, n] float64      | joint positions (rad), config joint order, at every control tick          |
-| `qd`       | [T, n] float64      | joint velocities (rad/s)                                                  |
-| `tau`      | [T, n] float64      | joint torque applied from this tick to the next (N m)                     |
-| `episode`  | [T] int64           | episode id, non-decreasing; no transition crosses a change of id          |
-| `dt`       | [] float64          | control period (s): sample t+1 is dt after sample t within an episode     |
-| `metadata` | [] str              | JSON: `format_version`, `joint_names`, `config_hash`, seed, ... (below)   |
-
-Sample t+1 is the state one tick after sample t under `tau[t]`, so the transitions a model learns are
-(q, qd, tau)[t] -> (q, qd)[t+1] for every t whose successor is in the same episode. `metadata` must hold
-`format_version` (`FORMAT_VERSION`), `joint_names` (the config's, in order) and `config_hash`
-(`config_hash(config)`); the collector adds its provenance (see `training.collect`).
-
-`config_hash(config)`: SHA-256 of the robot config's parsed YAML tree (after `--set` overrides) as canonical
-JSON (sorted keys, no whitespace) without the sections `buses` (where the robot is plugged in), `policy` and
-`pinn` (which models run: a trained PINN is committed into the config after the data it learnt from, and the
-policy file's own SHA-256 is recorded separately), then a NUL byte, then the bytes of the MJCF model file. So it
-changes with the joints, limits, gains, rates, safety settings and the simulated robot, not with comments.
-
-The split (`split_by_time`) is contiguous: the first `train_fraction` of the samples train, the rest test; each
-part is a `Dataset` of its own, so no transition crosses the split. `compute_stats` gives the `DatasetStats` a
-model's `fit_normalisation` takes, from the valid transitions of the part it is given (the training part).
-`windows` cuts a part into windows for truncated back-propagation through time (see `Windows`).
+The arrays, the metadata and what `config_hash` covers: docs/dynamics.md ("The dataset file"). Sample t + 1 is the
+state one tick after sample t under `tau[t]`, so a model learns (q, qd, tau)[t] -> (q, qd)[t + 1] for every t whose
+successor is in the same episode (`training.episodes`). `split_by_time` is contiguous: the first `train_fraction`
+of the samples train, the rest test, each a `Dataset` of its own, so no transition crosses the split.
 """
 
 from __future__ import annotations
@@ -41,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from bruce_hw.config import RobotConfig
+from training.episodes import episode_runs, transition_indices
 
 FORMAT_VERSION = 1
 STATE_ARRAYS = ("q", "qd", "tau")
@@ -57,7 +37,7 @@ class DatasetError(ValueError):
 
 
 def config_hash(config: RobotConfig) -> str:
-    """The robot config's identity for datasets (module docstring: what it covers and what it leaves out)."""
+    """The robot config's identity for datasets (docs/dynamics.md: what it covers and what it leaves out)."""
     tree = {key: value for key, value in config.raw.items() if key not in HASH_EXCLUDED_SECTIONS}
     digest = hashlib.sha256(json.dumps(tree, sort_keys=True, separators=(",", ":")).encode())
     digest.update(b"\0")
@@ -153,18 +133,6 @@ class Dataset:
                        (first + start, first + stop))
 
 
-def episode_ranges(dataset: Dataset) -> list[tuple[int, int]]:
-    """(start, stop) of each episode's contiguous run of samples, in order."""
-    cuts = np.flatnonzero(np.diff(dataset.episode) != 0) + 1
-    edges = [0, *cuts.tolist(), len(dataset)]
-    return list(zip(edges[:-1], edges[1:], strict=True))
-
-
-def transition_indices(dataset: Dataset) -> np.ndarray:
-    """Every t whose transition (q, qd, tau)[t] -> (q, qd)[t + 1] stays inside one episode of `dataset`."""
-    return np.flatnonzero(dataset.episode[:-1] == dataset.episode[1:])
-
-
 def split_by_time(dataset: Dataset, train_fraction: float = 0.8) -> tuple[Dataset, Dataset]:
     """(train, test): the first round(train_fraction T) samples and the rest, never shuffled (adjacent 1 kHz
     samples are near-duplicates: a shuffled split would test on the training data)."""
@@ -224,7 +192,7 @@ class DatasetStats:
 
 def compute_stats(train: Dataset) -> DatasetStats:
     """Statistics of `train`'s valid transitions (pass the training split only: test data must not leak in)."""
-    t = transition_indices(train)
+    t = transition_indices(train.episode)
     if len(t) == 0:
         raise DatasetError(f"{train.source}: no transition inside an episode to compute statistics from")
 
@@ -293,7 +261,7 @@ def windows(dataset: Dataset, length: int, stride: int | None = None, offset: in
     if not (isinstance(offset, int) and 0 <= offset < max(length, stride)):
         raise ValueError(f"windows: offset must be an integer in [0, {max(length, stride)}), got {offset!r}")
     starts, episodes, continues = [], [], []
-    for begin, end in episode_ranges(dataset):
+    for begin, end in episode_runs(dataset.episode):
         first = np.arange(begin + offset, end - length, stride)  # the last sample, start + length, is < end
         if len(first) == 0:
             continue
@@ -321,7 +289,7 @@ def file_sha256(path: str | Path) -> str:
 
 
 def save_dataset(path: str | Path, dataset: Dataset) -> Path:
-    """Write `dataset` in the documented format (module docstring), atomically: a crash leaves no half file."""
+    """Write `dataset` in the documented format (docs/dynamics.md), atomically: a crash leaves no half file."""
     path = Path(path)
     for key in ("joint_names", "config_hash"):
         if key not in dataset.metadata:

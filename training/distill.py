@@ -2,21 +2,12 @@
 
     python -m training.distill --out configs/robots/policies/bruce_walk.onnx [--seed 0] [--rounds N] ...
 
-The student sees exactly what the runtime's policy sees: the paper's Table I observation built by
-`runtime.policy.ObservationBuilder` (clock, command, q, q', base linear and angular velocity, Euler angles, last
-action) and outputs a_t, which goes through the runtime's own loop (`runtime.run.run_session`: Eq. 8, the safety
-stage) at 1 kHz in the MuJoCo mock.
-
-DAgger (Ross et al. 2011): round 0 rolls out the teacher; in round k the executed action is the teacher's with
-probability beta_k = beta_decay^k, else the student's, and the teacher labels every visited state. The dataset
-aggregates all rounds and the student is trained on it after each round. To widen the states it visits, each
-episode samples piecewise-constant velocity commands (ramped, as `runtime.commands` ramps them), pushes the base
-at random and adds noise to the executed actions.
-
-Normalisation is folded into the exported graph (obs -> action in SI units, as the runtime expects). The third
-Euler input is the yaw's error to the commanded heading (`runtime.heading`), the reference the teacher steers to,
-not the absolute yaw: the student can then learn the teacher's heading correction, and walking stays invariant
-to where north is.
+The student sees the runtime policy's observation (`runtime.policy.ObservationBuilder`), and its action goes through
+the runtime's own loop (`runtime.run.run_session`: Eq. 8, safety) at 1 kHz in the mock. DAgger (Ross et al. 2011):
+round 0 rolls out the teacher; in round k the executed action is the teacher's with probability beta_decay^k, else
+the student's; the teacher labels every visited state and the student is trained on all rounds' data after each
+round. Sampled, ramped velocity commands, random pushes and action noise widen the states visited. The exported graph
+maps obs to action in SI units (normalisation folded in). The observation and the committed policy: docs/walking.md.
 """
 
 from __future__ import annotations
@@ -334,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
                                    observe=args.observe)
     torch.set_num_threads(1)
     student, history = distill(config, settings)
-    from training.export import export_mlp_policy_onnx, sidecar_path
+    from training.onnx_export import export_mlp_policy_onnx, sidecar_path
 
     student.eval()
     path = export_mlp_policy_onnx(student, args.out, ObservationBuilder(config).size, config.n_joints)

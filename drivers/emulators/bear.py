@@ -1,56 +1,13 @@
 """A byte-exact emulator of a BEAR RS-485 chain: N Koala BEARs by ID behind one pseudo-terminal.
 
-The host opens `emulator.path` as it would /dev/ttyUSB0 and speaks the BEAR protocol (drivers/bear.py's docstring
-restates it): PING, READ_STAT, WRITE_STAT, READ_CFG, WRITE_CFG, SAVE_CFG and BULK_COMM are answered as PyBEAR
-and BRUCE-OP use them, so any spec-following host works, not only `drivers.bear.BearBus`: no reply to
-writes, nor to anything sent to the broadcast ID except BULK_COMM; one status packet per listed motor, in request
-order, for BULK_COMM with reads; register values typed by the register tables (u32 or f32, little-endian).
-
-A physics adapter drives it through thread-safe accessors: `set_measured[_many]` (present position, velocity, iq)
-and `command` / `commands` (mode, torque_enable, goals, error byte), every 1 ms if it likes.
-
-Choices where the sources are silent (documented here because a host can observe them):
-- Config writes while torque is enabled (torque_enable reads anything but 0) are ignored, the whole packet, without an
-  error bit: the sources say only that config registers "can only be written while torque is disabled", and writes
-  get no reply. A host sees it by reading back (BearBus.write_config does). SAVE_CFG is ignored likewise.
-- torque_enable: writing 0 disables and clears latched faults and damping; 1 enables; 3 enters damping (sets bit 3);
-  other values are ignored with the communication bit. It reads 3 while damping or while the E-stop input is
-  asserted, 2 while enabled with a fault bit (2, 4, 5, 6) set, else the 0/1 last written.
-- Error bits: 0 is set by a corrupted packet (bad checksum) carrying this ID, an unknown register address, an
-  unsupported instruction or a malformed packet, and is cleared once reported. 1 (overheat) while a temperature is
-  above temp_limit_low; 5 (hardware) while input_voltage is outside [min_voltage, max_voltage]; 4 (joint limit)
-  while present_position is outside [limit_position_min, limit_position_max]; these follow the state, unlatched.
-  3 while damping or the E-stop input is asserted. Bits injected with `set_error` latch until torque_enable = 0 is
-  written (bit 3: until `set_error(id, 3, False)`, it models the external E-stop input).
-- Watchdog: watchdog_timeout (u32, units undocumented) is taken as milliseconds; 0 turns it off. In torque mode
-  (mode 0), enabled, a BEAR that has received no packet addressed to it (its ID, the broadcast ID, or a BULK_COMM
-  entry) for longer than that goes into damping. It is checked whenever bytes arrive and on every `command(s)` call
-  (the plant's, every 1 ms), so expiry is detected within a millisecond while a plant runs, at the next packet
-  otherwise.
-- Reading an unknown address returns 4 zero bytes and sets bit 0 (a read whose reply would not fit one packet, over
-  63 addresses, gets no reply and sets bit 0); writing an unknown or read-only register skips it
-  and sets bit 0. A mode above 3 is refused (bit 0). Writing config `id` moves the BEAR to the new ID (if free).
-- BULK_COMM applies a motor's writes before reading its registers. A silent (`silence`) BEAR neither applies nor
-  answers anything, as if unplugged.
-- The ping reply's data is `ping_data` (2 bytes: firmware and hardware version; the content is undocumented).
-- present_position is reported as the physics adapter sets it (the homing offset is the adapter's business).
-- A partial packet older than 20 ms when new bytes arrive is dropped (an idle-line reset, as UART firmware does).
-
-Faults for tests: `silence(ids)` (those BEARs unplugged), `unplug()` (the bus's wire cut both ways: bytes from the
-host are discarded unread, nothing is answered, every watchdog runs out), `set_error`, `set_estop`,
-`corrupt_next_reply(kind)` (one reply), `set_reply_loss(drop, corrupt, seed)` (every reply independently dropped or
-corrupted, counted by kind in `reply_losses`), `set_reply_delay(fixed, jitter, seed)` (every answer starts fixed +
-U(0, jitter) s after its request arrived, an honest wall-clock wait on the pty thread; a BULK_COMM's replies are
-delayed as a whole: the first one starts late, the others follow it at once), `power_cycle`.
-
-Event log: `drain_events()` returns `(time.monotonic() stamp, text)` pairs of what happened since the last drain,
-stamped when it happened (a watchdog expiry: when detected). Logged: every change of a BEAR's torque_enable as read,
-with its cause (`bear 3 torque_enable 1 -> 3 (watchdog: 51.2 ms without a packet)`, `(host write)`,
-`(e-stop input)`, `(fault: joint_limit)`, `(fault cleared)`, `(<register> set)`, `(power cycle)`); a watchdog_timeout
-value taking effect (`bear 3 watchdog_timeout 50`); a config write ignored because torque is enabled
-(`bear 3 config write ignored (torque_enable 1)`); `bear unplug` / `bear plug`; `bear reply loss drop P corrupt P`;
-`bear reply delay 3 ms + U(0, 1 ms)`.
-"bear" is the emulator's `name`. At most 10,000 events wait; older ones are dropped (counted in `events_dropped`).
+The host opens `BearBusEmulator.path` as it would /dev/ttyUSB0 and speaks the BEAR protocol (`drivers.bear_codec`):
+PING, READ_STAT, WRITE_STAT, READ_CFG, WRITE_CFG, SAVE_CFG and BULK_COMM are answered as PyBEAR and BRUCE-OP use
+them, so any spec-following host works, not only `drivers.bear.BearBus`. A physics adapter drives it through
+thread-safe accessors, every 1 ms if it likes: `set_measured[_many]` (present position, velocity, iq) and `command`
+/ `commands` (mode, torque_enable, goals, error byte). Faults for tests: `silence`, `unplug`, `set_error`,
+`set_estop`, `corrupt_next_reply`, `set_reply_loss`, `set_reply_delay`, `power_cycle`; `drain_events` for the
+event log. Where the sources are silent, the choices (a host can observe them) are noted at the code that makes
+them.
 """
 
 from __future__ import annotations
@@ -90,7 +47,7 @@ from drivers.emulators.reply_delay import ReplyDelay
 from drivers.errors import LinkStats
 from drivers.framing import skip_to_header
 
-STALE_RX_S = 0.02
+STALE_RX_S = 0.02  # a partial packet this old when new bytes arrive is dropped (an idle-line reset, as UART firmware)
 # Plain ints for the hot path (IntFlag arithmetic builds enum members: tens of microseconds per bulk cycle).
 _COMM, _OVERHEAT, _ESTOP = int(BearError.COMMUNICATION), int(BearError.OVERHEAT), int(BearError.WATCHDOG_ESTOP)
 _JOINT_LIMIT, _HARDWARE = int(BearError.JOINT_LIMIT), int(BearError.HARDWARE)
@@ -168,7 +125,15 @@ class EventLog:
 
 
 class _Bear:
-    """One actuator: config and status register files, flash, and the flags behind its error byte."""
+    """One actuator: config and status register files, flash, and the flags behind its error byte.
+
+    Error bits: 0 is set by a corrupted packet (bad checksum) carrying this ID, an unknown register address, an
+    unsupported instruction or a malformed packet, and cleared once reported. 1 (overheat) while a temperature is
+    above temp_limit_low, 5 (hardware) while input_voltage is outside [min_voltage, max_voltage], 4 (joint limit)
+    while present_position is outside the position limits: these follow the state, unlatched. 3 while damping or the
+    E-stop input is asserted. Injected bits latch until torque_enable = 0 is written.
+    torque_enable reads 3 while damping or E-stopped, 2 while enabled with a fault bit (2, 4, 5, 6) set, else the
+    0/1 last written. present_position is what the physics adapter set (the homing offset is the adapter's)."""
 
     def __init__(self, device_id: int, now: float):
         self.config = {name: _f32(v) if CONFIG_REGISTERS[name].kind == "f32" else v
@@ -241,6 +206,8 @@ class _Bear:
                              for name in names])
 
     def write_status(self, address: int, raw: bytes) -> None:
+        """An unknown or read-only register is skipped with bit 0. torque_enable: 0 disables and clears latched
+        faults and damping, 1 enables, 3 enters damping; other values are ignored with bit 0."""
         entry = _STATUS_WRITES.get(address)
         if entry is None:
             self.comm_warning = True
@@ -259,7 +226,10 @@ class _Bear:
             self.comm_warning = True
 
     def write_config(self, pairs: list[tuple[int, bytes]], taken: set[int]) -> list[str] | None:
-        """The names of the registers taken; None when the whole packet is refused (torque enabled)."""
+        """The names of the registers taken; None when the whole packet is refused: torque enabled (torque_enable
+        reads anything but 0), without an error bit, since the sources say only that config registers "can only be
+        written while torque is disabled" and writes get no reply (a host sees it by reading back). An unknown
+        address, a mode above 3 or an `id` that is taken are skipped with bit 0; a new `id` moves the BEAR."""
         if self.torque_enable() != TorqueEnable.DISABLED:
             return None  # the whole packet is refused while torque is enabled
         written = []
@@ -279,7 +249,9 @@ class _Bear:
         return written
 
     def check_watchdog(self, now: float) -> float | None:
-        """Damping if the watchdog ran out; returns how long the BEAR went without a packet when it trips now."""
+        """Damping if the watchdog ran out; returns how long the BEAR went without a packet when it trips now.
+        watchdog_timeout (units undocumented) is taken as milliseconds, 0 off; it runs in torque mode (mode 0),
+        enabled, on packets addressed to this BEAR (its ID, the broadcast ID, or a BULK_COMM entry)."""
         timeout_ms = self.config["watchdog_timeout"]
         if (timeout_ms and now - self.last_rx > timeout_ms / 1000.0 and self.config["mode"] == 0
                 and self.torque_enable() == _ENABLED):
@@ -309,7 +281,7 @@ class BearBusEmulator:
 
     def __init__(self, ids: Iterable[int] = range(1, 11), name: str = "bear", ping_data: bytes = b"\x01\x01"):
         self.name = name
-        self.ping_data = bytes(ping_data)
+        self.ping_data = bytes(ping_data)  # firmware and hardware version (content undocumented)
         self.stats = LinkStats()  # what the devices received: packets, and rejected bytes by reason
         self.requests: Counter[str] = Counter()  # instruction name -> packets handled
         self._lock = threading.RLock()
@@ -525,7 +497,11 @@ class BearBusEmulator:
 
     # -- event log --
     def drain_events(self) -> list[tuple[float, str]]:
-        """(time.monotonic() stamp, text) of every event since the last drain, oldest first (module docstring)."""
+        """(time.monotonic() stamp, text) of every event since the last drain, oldest first, stamped when it
+        happened (a watchdog expiry: when detected): every change of a BEAR's torque_enable as read, with its cause
+        (`bear 3 torque_enable 1 -> 3 (watchdog: 51.2 ms without a packet)`, `(host write)`, `(e-stop input)`,
+        `(fault: joint_limit)`, `(power cycle)`, ...); a watchdog_timeout taking effect; a config write ignored
+        because torque is enabled; unplug / plug; reply loss and reply delay settings. "bear" is `name`."""
         return self._events.drain()
 
     @property
@@ -560,7 +536,9 @@ class BearBusEmulator:
                 self.on_bulk()
 
     def check_watchdogs(self) -> None:
-        """Run every BEAR's watchdog now (a device clock: a lockstep plant calls it every millisecond)."""
+        """Run every BEAR's watchdog now (a device clock: a lockstep plant calls it every millisecond). `handle`
+        runs them too, so an expiry is detected within a millisecond while a plant runs, at the next packet
+        otherwise."""
         with self._lock:
             now = time.monotonic()
             for bear in self._bears.values():
@@ -632,6 +610,7 @@ class BearBusEmulator:
             data = None
             if instruction is Instruction.PING and not params:
                 data = self.ping_data
+            # A read whose reply would not fit one packet (over 63 addresses) gets no reply, and bit 0.
             elif instruction is Instruction.READ_STAT and 4 * len(params) <= MAX_PARAMS:
                 data = bear.read("status", params)
             elif instruction is Instruction.READ_CFG and 4 * len(params) <= MAX_PARAMS:
@@ -645,16 +624,18 @@ class BearBusEmulator:
                 else:
                     self._write_config(bear, pairs, now)
             elif instruction is Instruction.SAVE_CFG and not params:
-                if bear.torque_enable() == TorqueEnable.DISABLED:
+                if bear.torque_enable() == TorqueEnable.DISABLED:  # ignored while enabled, as config writes
                     bear.flash = dict(bear.config)
             else:  # malformed, unknown or unsupported (SET_POSITION: battery-backed BEARs only)
                 bear.comm_warning = True
-            if data is not None and device_id != BROADCAST_ID:
+            if data is not None and device_id != BROADCAST_ID:  # no reply to writes, nor to the broadcast ID
                 out = self._reply(bear, data)
         self._rekey()
         return out
 
     def _bulk(self, params: bytes, now: float) -> bytes:
+        """One status packet per listed motor, in request order (none without reads); a motor's writes are
+        applied before its registers are read."""
         if len(params) < 2:
             self.stats.reject("bulk_length")
             return b""

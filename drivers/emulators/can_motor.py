@@ -1,21 +1,10 @@
 """MIT-mode CAN motors (mini cheetah protocol, see drivers/can_motor.py) on a python-can bus.
 
-Each hosted motor behaves like the reference firmware: it listens to standard frames whose arbitration ID is its
-motor ID, obeys the special frames (enter motor mode, exit motor mode, set zero), takes 8-byte commands while in
-motor mode (and ignores them in rest mode), and answers every frame addressed to it with a 6-byte reply
-``[ID, p, v, t]`` on the host's arbitration ID. Frames for other IDs are ignored, as on a shared bus.
-
-Physics adapter (thread-safe, motor units: the motor's output shaft, before its zero offset): `set_measured` /
-`set_state` write the measured position and velocity, `commanded_torque` / `torques` read the MIT-mode torque
-``clamp(kp (p_des - p) + kd (v_des - v) + t_ff, t_min, t_max)`` computed from the last command and the latest
-measured state, or 0 outside motor mode. ``p`` is the measured position minus the zero set by SET_ZERO; that is
-also the position the motor reports. Entering or leaving motor mode clears the command (no torque until the next
-one), so a stale command never acts.
-
-Faults for tests: `silence(ids)` (stop answering), `inject_garbage(ids, kind)` (corrupted replies instead of or
-before the real one), `send_raw` (any frame onto the bus).
-
-Use `interface="virtual"` inside one process; across processes use socketcan's `vcan` or python-can's
+`CanMotorEmulator(channel, motor_ids)` hosts motors that behave like the reference firmware: each listens to
+standard frames whose arbitration ID is its motor ID (others are ignored, as on a shared bus) and answers every one
+with a 6-byte reply on the host's arbitration ID. Physics adapter (thread-safe, motor units): `set_measured` /
+`set_state` in, `commanded_torque` / `torques` out. Faults for tests: `silence(ids)`, `inject_garbage(ids, kind)`,
+`send_raw`. Use `interface="virtual"` inside one process; across processes socketcan's `vcan` or python-can's
 `udp_multicast` interface.
 """
 
@@ -59,6 +48,8 @@ class _Motor:
     garbage: list[tuple[str, bool]] = field(default_factory=list)  # pending (kind, replace) per reply
 
     def commanded_torque(self) -> float:
+        """clamp(kp (p_des - p) + kd (v_des - v) + t_ff, t_min, t_max) from the last command and the latest measured
+        state, p measured from the zero set by SET_ZERO (also what the motor reports); 0 outside motor mode."""
         if not self.motor_mode:
             return 0.0
         p_des, v_des, kp, kd, t_ff = self.command
@@ -110,6 +101,7 @@ class CanMotorEmulator:
 
     # -- physics adapter ---------------------------------------------------------------------------------------
     def set_measured(self, motor_id: int, position: float, velocity: float, torque: float | None = None) -> None:
+        """Motor units: the output shaft, before the zero offset; `torque` None reports the commanded torque."""
         with self._lock:
             m = self._motors[motor_id]
             m.position, m.velocity, m.torque = float(position), float(velocity), torque
@@ -202,6 +194,8 @@ class CanMotorEmulator:
                 return  # another node's frame
             data = bytes(msg.data)
             kind = special_kind(data)
+            # Entering or leaving motor mode clears the command: a stale command never acts. Commands are taken only
+            # in motor mode.
             if kind == "enter_motor_mode":
                 motor.motor_mode, motor.command = True, ZERO_COMMAND
             elif kind == "exit_motor_mode":

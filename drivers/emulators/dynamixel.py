@@ -1,69 +1,13 @@
 """A Dynamixel Protocol 2.0 bus of X-series servos on a pseudo-terminal, byte-exact to the ROBOTIS protocol, so that
 ROBOTIS' own dynamixel-sdk (or any other spec-following host) opens `path` as if it were a U2D2 / USB adapter.
 
-Wire: header FF FF FD 00, ID, LEN (little-endian, after stuffing, CRC included), instruction, parameters (byte
-stuffing FF FF FD -> FF FF FD FD in both directions), CRC-16 (polynomial 0x8005) over everything before it. Status
-packets carry instruction 0x55 and the error byte (bit 7 Alert, low bits an error number).
-
-Instructions: PING (model number + firmware version), READ, WRITE, REG_WRITE, ACTION, FACTORY_RESET (0xFF / 0x01 /
-0x02), REBOOT, CLEAR, SYNC_READ, SYNC_WRITE, BULK_READ, BULK_WRITE. Anything else addressed to one of our IDs is
-answered with Instruction Error; FAST_SYNC_READ / FAST_BULK_READ are not emulated.
-
-Choices where the sources are silent (BRUCE's exact model is not stated anywhere):
-
-* Model: XM430-W350 (model number 1020), firmware version 52; its Protocol 2.0 control table (EEPROM 0..63, RAM
-  64..147, Indirect Address 1..28 at 168..222 -> Indirect Data 1..28 at 224..251, Indirect Address 29..56 at
-  578..632 -> Indirect Data 29..56 at 634..661). Reserved gaps read as 0 and refuse writes (Access Error).
-* Access rules: writes to read-only items, to gaps, beyond the table, and to EEPROM (0..63) while Torque Enable is 1
-  are refused with Access Error and nothing is written; out-of-range values (ID, baud, operating mode, torque
-  enable, status return level, gains, indirect addresses) with Data Range Error; goal position outside
-  [min, max position limit] in position mode with Data Limit Error. A packet is applied all or nothing.
-* Indirect Address items are RAM (writable with torque on), as in the X-series table.
-* Torque on sets goal position = present position (no jump). With a hardware error whose bit is in Shutdown (63)
-  torque goes off and a write of Torque Enable = 1 is answered with Result Fail until REBOOT.
-* A packet with a bad CRC addressed to one of our IDs is answered with CRC Error; a partial packet is dropped when
-  no byte arrives for `frame_gap_s` (an inter-byte timeout).
-* SYNC_READ / BULK_READ replies follow the order of the request; a silent servo is skipped and the others still
-  answer. Return Delay Time is stored, not waited; `set_reply_delay(fixed, jitter)` delays every answer instead (an
-  honest wall-clock wait on the pty thread, from the request's arrival). Baud rate writes are stored, not applied.
-* Without a physics adapter (`track_goals=True`) present position jumps to the goal while torque is on, so the bus
-  behaves as ideal servos; a physics adapter constructs with `track_goals=False` and writes present values itself.
-
-Bus Watchdog (item 98, 1 byte, RAM, signed): 0 off (writing 0 also clears a Bus Watchdog Error), 1..127 armed in
-units of 20 ms, -1 (reads 0xFF) Bus Watchdog Error. A host write outside -1..127 is refused with Data Range Error.
-
-* What counts as a packet: every valid instruction packet that reaches the bus (CRC good, any instruction code, any
-  ID, broadcast or not, including packets for other servos and unknown instructions), since each servo sees all
-  traffic. Bytes with a bad CRC, cut-short packets and status packets (0x55) of other devices do not count. A
-  servo that is `silence`d is unplugged: it hears nothing, so its watchdog runs out like a dropped bus.
-* It runs while Torque Enable is 1 and the value is 1..127: when more than value x 20 ms have passed since the last
-  packet the servo heard, it stops and Bus Watchdog becomes -1. "Stops" here: torque stays on and the servo holds
-  where it is: in the position modes (3, 4, 5) goal position := present position (so a physics adapter reading
-  `goal_joint_positions` sees it hold); in velocity mode (1) goal velocity := 0; in current mode (0) goal current
-  := 0; in PWM mode (16) goal PWM := 0.
-* While in the error, writes that touch Goal PWM (100), Goal Current (102), Goal Velocity (104) or Goal Position
-  (116), directly, through Indirect Data, or in SYNC_/BULK_WRITE, are refused with Data Range Error (nothing is
-  written; SYNC_/BULK_WRITE have no status, so they are dropped silently). Writing 0 clears the error; writing
-  1..127 while in the error is refused with Data Range Error (only 0 clears it, as the manual says; our choice
-  where it is silent). A host write of -1 is accepted and puts the servo in the error, stopped, as an expiry
-  would. REBOOT / FACTORY_RESET set RAM back to its initial values, which clears the error.
-* Time is checked lazily, whenever the emulator is touched: on every chunk of bytes received (before its packets
-  count as heard) and in every accessor (`goal_position`, `goal_joint_positions`, `torque_enabled`,
-  `torque_enabled_all`, `set_present`, `set_joint_state`, `item`, `drain_events`, the fault setters) and
-  `check_watchdogs()`. A silent host is noticed by the next poll of a physics adapter; the state anyone observes
-  is always up to date, and the expiry's event stamp is the moment it was detected.
-
-Event log (`drain_events()`: (time.monotonic() stamp, text) since the last drain, thread-safe, the newest
-`MAX_EVENTS` kept): every change of a servo's Torque Enable ("dynamixel 11 torque on" / "... torque off", whatever
-the cause: a write, REBOOT, a hardware error shutdown), every accepted write of Bus Watchdog ("dynamixel 11 bus
-watchdog 20 (400 ms)", "... bus watchdog 0 (off)", "... 0 (off, error cleared)"), a reboot's reset of an armed or
-tripped watchdog, and an expiry ("dynamixel 11 bus watchdog: stopped after 402 ms without a packet"). A packet's
-events carry the time its bytes were received; an expiry, the time it was detected. Events pushed out of a full
-log are counted in `events_dropped`.
-
-Thread-safe accessors for a physics adapter (every 1 ms): `set_present`, `set_joint_state`, `goal_position`,
-`goal_joint_positions`, `torque_enabled`, `torque_enabled_all`. Faults for tests: `silence`, `set_hardware_error`,
-`corrupt_replies`, `clear_faults`.
+`DynamixelBusEmulator(ids)`: the servos (`XSeriesServo`: control table, access rules, Bus Watchdog) answer PING,
+READ, WRITE, REG_WRITE, ACTION, FACTORY_RESET, REBOOT, CLEAR and SYNC_/BULK_ READ and WRITE; anything else
+addressed to one of our IDs gets Instruction Error (FAST_SYNC_READ / FAST_BULK_READ are not emulated). Thread-safe
+accessors for a physics adapter (every 1 ms): `set_present`, `set_joint_state`, `goal_position`,
+`goal_joint_positions`, `torque_enabled`, `torque_enabled_all`; `drain_events` for the event log; faults for tests:
+`silence`, `set_hardware_error`, `corrupt_replies`, `set_reply_delay`, `clear_faults`. Where the sources are silent
+(BRUCE's exact model is not stated anywhere), the choice is noted at the code that makes it.
 """
 
 from __future__ import annotations
@@ -116,6 +60,9 @@ from drivers.emulators.pty_device import PtyDevice
 from drivers.emulators.reply_delay import ReplyDelay
 from drivers.errors import LinkStats
 
+# The model emulated: XM430-W350, firmware 52, and its Protocol 2.0 control table (EEPROM 0..63, RAM 64..147,
+# Indirect Address 1..28 at 168..222 -> Indirect Data 1..28 at 224..251, Indirect Address 29..56 at 578..632 ->
+# Indirect Data 29..56 at 634..661). Reserved gaps read as 0 and refuse writes (Access Error).
 XM430_W350 = 1020
 FIRMWARE_VERSION = 52
 TABLE_SIZE = 662
@@ -146,8 +93,8 @@ def _items(model_number: int, firmware: int) -> list[Item]:
         Item(2, 4, "model_information", False, 0),
         Item(6, 1, "firmware_version", False, firmware),
         Item(7, 1, "id", True, 1, valid=(0, MAX_ID)),
-        Item(8, 1, "baud_rate", True, 1, valid=(0, 7)),
-        Item(9, 1, "return_delay_time", True, 250),
+        Item(8, 1, "baud_rate", True, 1, valid=(0, 7)),    # stored, not applied
+        Item(9, 1, "return_delay_time", True, 250),        # stored, not waited (set_reply_delay delays answers)
         Item(10, 1, "drive_mode", True, 0),
         Item(11, 1, "operating_mode", True, 3, valid=frozenset({0, 1, 3, 4, 5, 16})),
         Item(12, 1, "secondary_id", True, 255),
@@ -196,7 +143,7 @@ def _items(model_number: int, firmware: int) -> list[Item]:
         Item(146, 1, "present_temperature", False, 30),
         Item(147, 1, "backup_ready", False, 0),
     ]
-    for block, (addr0, data0) in enumerate(((168, 224), (578, 634))):
+    for block, (addr0, data0) in enumerate(((168, 224), (578, 634))):  # Indirect Address: RAM, as in the X series
         for k in range(28):
             n = block * 28 + k + 1
             items.append(Item(addr0 + 2 * k, 2, f"indirect_address_{n}", True, data0 + k, valid=(64, TABLE_SIZE - 1)))
@@ -283,7 +230,12 @@ class XSeriesServo:
         return error, new
 
     def _check_write(self, address: int, data: bytes) -> tuple[int, bytearray | None, set[str]]:
-        """(error number, the table after the write or None, the names of the items the write touches)."""
+        """(error number, the table after the write or None, the names of the items the write touches).
+
+        A packet is applied all or nothing. Access Error: a read-only item, a gap, beyond the table, EEPROM (0..63)
+        while Torque Enable is 1. Data Range Error: a value outside an item's `valid`; goals and Bus Watchdog > 0
+        while in Bus Watchdog Error. Data Limit Error: goal position outside the position limits in position mode.
+        Result Fail: Torque Enable = 1 while a hardware error bit that is in Shutdown (63) is set, until REBOOT."""
         if not data:
             return ERR_DATA_LENGTH, None, set()
         if address + len(data) > TABLE_SIZE:
@@ -321,7 +273,7 @@ class XSeriesServo:
         torque_on = new[64] and not self.torque
         was_error = self.watchdog_error
         self.table[:] = new
-        if torque_on:
+        if torque_on:  # no jump: the goal starts where the servo is
             self._put("goal_position", self.get("present_position"))
         if "bus_watchdog" in touched:
             self._watchdog_written(was_error)
@@ -331,6 +283,13 @@ class XSeriesServo:
         return 0
 
     # -- Bus Watchdog ------------------------------------------------------------------------------------------
+    # Item 98 (1 byte, RAM, signed): 0 off (writing 0 also clears a Bus Watchdog Error), 1..127 armed in units of
+    # 20 ms, -1 (reads 0xFF) in error. Every valid instruction packet on the bus counts as heard, whatever its ID
+    # or instruction (each servo sees all traffic); bad CRCs, cut-short packets and other devices' status packets
+    # do not, and a `silence`d servo is unplugged: it hears nothing. Armed with torque on and silent for longer, the
+    # servo stops (`_stop`) and reads -1; only 0 clears the error (1..127 is refused: the manual says only 0 clears
+    # it, our choice where it is silent), a host write of -1 puts it in the error as an expiry would, and REBOOT /
+    # FACTORY_RESET clear it with the rest of RAM.
     def _watchdog_written(self, was_error: bool) -> None:
         value = self.get("bus_watchdog")
         if value == BUS_WATCHDOG_ERROR:
@@ -362,7 +321,9 @@ class XSeriesServo:
         return True
 
     def _stop(self) -> None:
-        """The servo stops where it is (torque stays as it is): the goal of its operating mode := hold."""
+        """The servo stops where it is, torque staying on: goal position := present position in the position modes
+        (3, 4, 5), so a physics adapter reading `goal_joint_positions` sees it hold; goal velocity, current or PWM
+        := 0 in modes 1, 0 and 16."""
         mode = self.get("operating_mode")
         if mode in (3, 4, 5):
             self._put("goal_position", self.get("present_position"))
@@ -427,7 +388,7 @@ class XSeriesServo:
 
 
 class DynamixelBusEmulator:
-    """X-series servos with the given IDs on one pty (see the module docstring)."""
+    """X-series servos with the given IDs on one pty."""
 
     def __init__(self, ids: Sequence[int], *, signs: Sequence[float] | None = None,
                  model_number: int = XM430_W350, firmware: int = FIRMWARE_VERSION, track_goals: bool = True,
@@ -476,6 +437,7 @@ class DynamixelBusEmulator:
         self.close()
 
     def _on_bytes(self, data: bytes) -> None:
+        # A partial packet is dropped when no byte arrived for `frame_gap_s` (an inter-byte timeout).
         now = time.monotonic()
         with self._lock:
             if self._parser.pending and now - self._last_rx > self.frame_gap_s:
@@ -504,7 +466,7 @@ class DynamixelBusEmulator:
                             servo.heard(now)
                 out += self._process(packet)
                 self._note(now)
-            for dxl_id in self._parser.take_crc_failures():
+            for dxl_id in self._parser.take_crc_failures():  # a bad CRC addressed to one of ours: CRC Error
                 servo = self._servo(dxl_id)
                 if servo is not None:
                     out.append(self._status(servo, ERR_CRC))
@@ -520,7 +482,9 @@ class DynamixelBusEmulator:
                 self._events.append((stamp, text))
 
     def _tick(self, now: float | None = None) -> None:
-        """Every servo's Bus Watchdog checked at `now` (default: this moment); events logged."""
+        """Every servo's Bus Watchdog checked at `now` (default: this moment); events logged. Time is checked
+        lazily, whenever the emulator is touched (bytes received, before they count as heard; every accessor), so
+        the state anyone observes is up to date and an expiry's event is stamped when it was detected."""
         now = time.monotonic() if now is None else now
         for servo in self.servos:
             servo.check_watchdog(now)
@@ -536,7 +500,10 @@ class DynamixelBusEmulator:
 
     def drain_events(self) -> list[tuple[float, str]]:
         """(time.monotonic() stamp, text) of the events since the last drain, oldest first (the newest
-        `MAX_EVENTS` are kept): Torque Enable changes, Bus Watchdog writes and expiries. Thread-safe."""
+        `MAX_EVENTS` are kept, `events_dropped` counts the rest): every change of Torque Enable, whatever its cause
+        ("dynamixel 11 torque on"), Bus Watchdog writes ("dynamixel 11 bus watchdog 20 (400 ms)"), a reboot's reset
+        of it, and expiries. A packet's events carry the time its bytes arrived; an expiry, when it was detected.
+        Thread-safe."""
         with self._lock:
             self._tick()
             events = list(self._events)
@@ -631,7 +598,8 @@ class DynamixelBusEmulator:
         return ERR_INSTRUCTION, b""
 
     def _group(self, packet: Packet) -> list[bytes]:
-        """SYNC_/BULK_ READ and WRITE (broadcast): replies in the order of the request."""
+        """SYNC_/BULK_ READ and WRITE (broadcast): replies in the order of the request; a silent servo is skipped
+        and the others still answer."""
         ins, p = packet.instruction, packet.params
         out: list[bytes] = []
         if ins in (INST_SYNC_READ, INST_SYNC_WRITE):

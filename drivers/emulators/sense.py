@@ -1,37 +1,11 @@
 """Byte-exact emulator of BRUCE's sense board (Pico firmware of BRUCE-OP v0.0.5/v0.0.7) on a pseudo-terminal.
 
-What it does, as the firmware does (BRUCE-OP v0.0.7's `pico.ino`):
-- Boots in IDLE: sends nothing, reads the host's commands about every `idle_poll_s` (10 ms).
-- NOMINAL: streams the 29-byte packet (`drivers.sense.encode_packet`) at `rate_hz` (1 kHz) and reads commands
-  only every `command_poll_s` (1 s on the real board, so a mode change takes up to a second to land).
-- Reading commands follows the firmware's loop: while 5 or more bytes are buffered, take one byte; if it is 0xFF,
-  take the next 4 and apply them when length, checksum and trailer are right (the last valid command wins); then
-  discard whatever is left in the buffer.
-- RESET: re-configures the IMU (clears an injected IMU glitch), then IDLE. No packet is sent.
-- CALIBRATE: sends the current bias as a packet with contact byte 0xFF, waits up to `calibration_wait_s` for a
-  second CALIBRATE, averages `calibration_samples` raw samples 1 ms apart (10,000 on the board), subtracts g from
-  z, sends the new bias the same way, waits for a third CALIBRATE to keep it ("EEPROM"), then IDLE either way.
-- Cooling: in NOMINAL mode, cooling_speed 0 stops pump and fan; 1..10 runs the pump at 30 + 5 * speed (servo units)
-  and the fan on (`pump_speed`, `fan_on`). In IDLE both are off.
-
-Values: a physics adapter calls `set_measurement(accel=, gyro=, contacts=)` (thread-safe; accel is the specific
-force in m/s^2 in the IMU frame, +g up at rest; gyro rad/s; contacts in FOOT_CONTACT_NAMES order). The board has no
-orientation output. With `quantize=True` (default) values go through the ISM330DHCX's int16 counts at the
-firmware's scales (gyro 17.5 mdps/LSB, +-573 dps; accel 0.122 mg/LSB, +-4 g), saturating like the chip; then the
-stored bias is subtracted in float32. The firmware's 5-sample moving average (at its 1.5 kHz IMU read rate) is not
-emulated: the adapter can filter if it wants that lag.
-
-Timing: a thread paces packets on `time.monotonic()`; on a loaded machine the rate is approximate. After a stall of
-up to 10 periods the missed packets are sent at once (as a USB CDC link delivers a backlog); longer gaps are not
-back-filled. When the host does not read, packets are dropped once 2 KiB are waiting unread (the real board's USB
-FIFO fills the same way), so the emulator never blocks. `set_reply_delay(fixed, jitter)`: every packet leaves
-fixed + U(0, jitter) s later than it would have (its sample is taken on time, so the host sees data that much
-older; the rate is kept), sent in order by a sender thread with an honest wall-clock wait; the firmware and a
-lockstep physics step never wait for it. With jitter a packet never overtakes the one before it (a serial line).
-
-Faults for tests: `set_silent()` (no packets, commands still obeyed), `corrupt_next(how)` ("checksum",
-"trailer", "length", "header", "flags", "truncate"), `inject_garbage(data)` (bytes before the next packet),
-`set_imu_glitch(std)` (noisy accel x, what the start-up IMU check catches; cleared by RESET unless `persistent`).
+`SenseBoardEmulator` runs the firmware's loop (`pico.ino`) on a thread: boots in IDLE (reads commands every
+`idle_poll_s`), streams the 29-byte packet at `rate_hz` in NOMINAL (reading commands only every `command_poll_s`,
+1 s on the board), RESET and CALIBRATE as the firmware does them, and the cooling pump and fan. A physics adapter
+calls `set_measurement(accel=, gyro=, contacts=)` (thread-safe), or `tick()` per step in lockstep. Faults for tests:
+`set_silent`, `corrupt_next(how)`, `inject_garbage`, `set_imu_glitch`, `set_reply_delay`. Packets are paced on
+`time.monotonic()`, so on a loaded machine the rate is approximate.
 """
 
 from __future__ import annotations
@@ -52,7 +26,7 @@ from drivers.emulators.reply_delay import ReplyDelay, wait_until
 from drivers.sense import (
     COMMAND_LEN,
     COMMAND_REST_LEN,
-    GRAVITY,
+    FIRMWARE_GRAVITY,
     HEADER,
     TRAILER,
     PicoMode,
@@ -62,14 +36,14 @@ from drivers.sense import (
 
 # The firmware's float32 scale factors (ISM330DHCX at 500 dps / 4 g; DEGREE_TO_RADIAN as the firmware spells it).
 GYRO_SCALE = np.float32(17.5) * (np.float32(0.0174533) / np.float32(1000))       # rad/s per LSB
-ACCEL_SCALE = np.float32(0.1220703125) * (np.float32(GRAVITY) / np.float32(1000))  # m/s^2 per LSB
+ACCEL_SCALE = np.float32(0.1220703125) * (np.float32(FIRMWARE_GRAVITY) / np.float32(1000))  # m/s^2 per LSB
 CORRUPTIONS = ("checksum", "trailer", "length", "header", "flags", "truncate")
 PUMP_MIN, PUMP_MAX = 30, 80
-_MAX_CATCH_UP = 10        # periods sent at once after a stall
+_MAX_CATCH_UP = 10        # periods sent at once after a stall (as a USB CDC link delivers a backlog); longer: dropped
 # Lockstep: with no step for this long (a host that is starting up, or gone) the board streams on its own clock again,
 # as the real one always does, so that the host's start-up check sees packets.
 LOCKSTEP_IDLE_S = 0.01
-_MAX_UNREAD = 2048        # bytes waiting in the host's input before packets are dropped
+_MAX_UNREAD = 2048        # bytes waiting in the host's input before packets are dropped (the board's USB FIFO fills)
 _MAX_RX = 65536           # host bytes kept between command reads
 
 
@@ -91,7 +65,7 @@ class SenseBoardEmulator:
         self._stop = threading.Event()
         self._rng = np.random.default_rng(seed)
         # measured values (written by the physics adapter) and the board's own state
-        self._accel = np.array([0.0, 0.0, GRAVITY])
+        self._accel = np.array([0.0, 0.0, FIRMWARE_GRAVITY])
         self._gyro = np.zeros(3)
         self._contact = np.zeros(4, dtype=bool)
         self._accel_offset = np.zeros(3)  # the chip's own offset, what calibration measures
@@ -159,7 +133,8 @@ class SenseBoardEmulator:
 
     # -- the physics adapter's side
     def set_measurement(self, accel=None, gyro=None, contacts=None) -> None:
-        """What the IMU and foot switches sense now; None leaves a quantity unchanged."""
+        """What the IMU and foot switches sense now: accel the specific force in m/s^2 in the IMU frame (+g up at
+        rest), gyro rad/s, contacts in FOOT_CONTACT_NAMES order; None leaves a quantity unchanged."""
         with self._lock:
             if accel is not None:
                 self._accel = np.array(accel, dtype=float).reshape(3)
@@ -181,14 +156,6 @@ class SenseBoardEmulator:
             if gyro is not None:
                 self._gyro_offset = np.array(gyro, dtype=float).reshape(3)
 
-    def set_bias(self, accel=None, gyro=None) -> None:
-        """The bias stored on the board (subtracted from every raw sample)."""
-        with self._lock:
-            if accel is not None:
-                self._accel_bias = np.array(accel, dtype=np.float32).reshape(3)
-            if gyro is not None:
-                self._gyro_bias = np.array(gyro, dtype=np.float32).reshape(3)
-
     def bias(self) -> tuple[np.ndarray, np.ndarray]:
         """(accel bias, gyro bias) stored on the board."""
         with self._lock:
@@ -205,7 +172,8 @@ class SenseBoardEmulator:
 
     @property
     def pump_speed(self) -> int | None:
-        """Pump servo command while cooling runs (30..80), None while it is stopped."""
+        """Pump servo command while cooling runs (30..80: 30 + 5 * speed), None while it is stopped (cooling speed 0,
+        or not NOMINAL: the fan is off then too)."""
         if not self._cooling_on:
             return None
         return int(PUMP_MIN + (PUMP_MAX - PUMP_MIN) * 0.1 * self._cooling_speed)
@@ -244,7 +212,9 @@ class SenseBoardEmulator:
                 del self._rx[:-_MAX_RX]
 
     def _read_commands(self) -> None:
-        """The firmware's `read_data`: scan whole 5-byte commands, the last valid one wins, drop the rest."""
+        """The firmware's `read_data`: while 5 or more bytes are buffered, take one; if it is 0xFF, take the next 4
+        and apply them when length, checksum and trailer are right (the last valid command wins); then drop the
+        rest."""
         with self._lock:
             data = bytes(self._rx)
             self._rx.clear()
@@ -316,7 +286,10 @@ class SenseBoardEmulator:
             self._send_sample()
 
     def _raw(self) -> tuple[np.ndarray, np.ndarray]:
-        """What the IMU chip reports now, in float32 SI units (before the board's bias)."""
+        """What the IMU chip reports now, in float32 SI units (before the board's bias). With `quantize`, through
+        the chip's int16 counts at the firmware's scales (gyro 17.5 mdps/LSB, +-573 dps; accel 0.122 mg/LSB, +-4 g),
+        saturating like the chip. The firmware's 5-sample moving average (at its 1.5 kHz IMU read rate) is not
+        emulated: an adapter can filter if it wants that lag."""
         with self._lock:
             accel = self._accel + self._accel_offset
             gyro = self._gyro + self._gyro_offset
@@ -342,8 +315,10 @@ class SenseBoardEmulator:
         self._send(garbage + bytes(packet))
 
     def set_reply_delay(self, fixed: float, jitter: float = 0.0, seed: int | str | None = None) -> None:
-        """From now on every packet leaves fixed + U(0, jitter) seconds later than it would have (module docstring).
-        ValueError outside [0, 0.1] s; `seed` makes the draws repeatable."""
+        """From now on every packet leaves fixed + U(0, jitter) seconds later than it would have: its sample is taken
+        on time, so the host sees data that much older at the same rate; a sender thread writes them in order (a
+        packet never overtakes the one before it, as on a serial line), and neither the firmware nor a lockstep
+        physics step waits for it. ValueError outside [0, 0.1] s; `seed` makes the draws repeatable."""
         self.reply_delay.set(fixed, jitter, seed)
 
     def _send(self, data: bytes) -> None:
@@ -387,6 +362,9 @@ class SenseBoardEmulator:
 
     # -- calibration (the firmware's calibrate_IMU)
     def _calibrate(self) -> None:
+        """Send the current bias as a bias report (contact byte 0xFF), wait up to `calibration_wait_s` for a second
+        CALIBRATE, average `calibration_samples` raw samples 1 ms apart (10,000 on the board), subtract g from z,
+        send the new bias the same way, and keep it ("EEPROM") only on a third CALIBRATE; IDLE either way."""
         with self._lock:
             old_accel, old_gyro = self._accel_bias.copy(), self._gyro_bias.copy()
         self._send(encode_packet(old_accel, old_gyro, bias_report=True))
@@ -402,7 +380,7 @@ class SenseBoardEmulator:
             gyro_sum += gyro
             time.sleep(0.001)
         new_accel = (accel_sum / n).astype(np.float32)
-        new_accel[2] -= np.float32(GRAVITY)
+        new_accel[2] -= np.float32(FIRMWARE_GRAVITY)
         new_gyro = (gyro_sum / n).astype(np.float32)
         self._send(encode_packet(new_accel, new_gyro, bias_report=True))
         if self._confirmed():

@@ -311,6 +311,8 @@ class _Sender:
 
     def _log_geometry(self, rr) -> None:
         """Each body's primitives, static, in the body's frame; the per-pose transforms place the bodies."""
+        from bruce_hw.quaternion import body_z_in_world  # here: the child process imports no bruce_hw otherwise
+
         names = self.geometry["names"]
         self.bodies = [(b, names[b]) for b in range(1, len(names))]  # body 0 is the world itself
         self.base_body = names.index("base") if "base" in names else None
@@ -327,8 +329,7 @@ class _Sender:
                 continue
             if kind == "capsule":
                 # MuJoCo centres a capsule on its position; rerun starts one at its translation, along local +z.
-                w, x, y, z = wxyz
-                pos = pos - size[1] * np.array([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
+                pos = pos - size[1] * np.array(body_z_in_world(wxyz))
             by_body.setdefault(body, {}).setdefault(kind, []).append((size, pos, quat, rgba))
         for body, by_kind in by_body.items():
             parts = []

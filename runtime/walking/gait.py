@@ -1,21 +1,12 @@
-"""The gait's timing and the swing foot's path.
+"""The gait's timing (`GaitClock`) and the swing foot's path (`min_jerk`, `swing_height`).
 
-The gait is locked to the policy's clock input (paper Table I: sin/cos of the gait phase): a period C_T holds
-two steps of C_T / 2, right foot in stance first, after one start-up period in double support. A student policy
-sees only that clock and the command, so the teacher's phase must be a function of the command history alone,
-which `GaitClock` is: both the teacher and the policy's observation builder run one.
-
-Step-timing adaptation, at the rate a clock input allows: C_T follows the commanded forward speed
-(`policy.gait_period_s` as a table of (vx, C_T) points). BRUCE walks fast forward only with short steps (at 0.36 s
-it falls at about 0.5 m/s, at 0.26 s it walks 0.75 m/s on a 0.8 command) and fast backward only with long ones
-(0.26 s falls at -0.5 m/s within 3 s; 0.40 s walks it, turning too, and stands 0.02-0.03 rad of action noise a
-little better than 0.44 s). The clock integrates 1 / C_T, so a change of cadence never jumps the phase.
-
-The clock also keeps the command the gait follows: the velocity command rate-limited to `COMMAND_ACCELERATION`,
-because a step change would ask for a step change of the footstep offsets, which the pendulum cannot follow within
-one step. C_T moves with it, the teacher plans its footsteps and heading with it, and the policy observes it, so
-the command a student sees is the one its teacher acted on (with the limiter hidden in the teacher, a student saw
-a command up to 0.5 m/s ahead of the teacher's for a second after each change).
+The gait is locked to the policy's clock input (paper Table I: sin/cos of the gait phase): a period C_T holds two
+steps of C_T / 2, right foot in stance first, after one start-up period in double support. A student policy sees
+only that clock and the command, so the teacher's phase must be a function of the command history alone, which
+`GaitClock` is: the teacher and the policy's observation builder each run one. C_T follows the commanded forward
+speed (`policy.gait_period_s`, docs/walking.md); the clock integrates 1 / C_T, so a change of cadence never jumps
+the phase. The clock also keeps the command the gait follows, rate-limited to `COMMAND_ACCELERATION` (the pendulum
+cannot follow a step change of the footstep offsets within a step), which the policy observes too.
 """
 
 from __future__ import annotations
@@ -24,6 +15,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from bruce_hw.types import GRAVITY
 
 COMMAND_ACCELERATION = np.array([0.5, 0.5, 1.0])  # m/s^2, m/s^2, rad/s^2: (vx, vy, yaw rate) change at most this fast
 
@@ -103,5 +96,5 @@ def swing_height(s: float, apex: float, landing: float) -> float:
     return apex * 16.0 * s * s * (1.0 - s) * (1.0 - s) + landing * min_jerk(s)
 
 
-def lipm_omega(com_height: float, gravity: float = 9.81) -> float:
+def lipm_omega(com_height: float, gravity: float = GRAVITY) -> float:
     return math.sqrt(gravity / com_height)

@@ -1,29 +1,14 @@
-"""The model-based walking controller ("teacher"): DCM footstep planning, swing trajectories, analytic leg IK.
+"""The model-based walking controller ("teacher", `WalkingTeacher`): DCM footstep planning, swing trajectories,
+analytic leg IK (docs/walking.md).
 
-It has the nominal controller's interface, a_t = teacher(state, base, command) at the policy rate, and the
-1 kHz Eq. 8 PD turns a_t into torques, exactly as for the learned policy it is distilled into.
-
-Each policy tick:
-1. Kinematics from the robot's own model: the joint angles and the estimated base orientation give the
-   ankles and the centre of mass relative to the base, in world-aligned axes.
-2. Gait timing is locked to the policy clock (`gait.GaitClock`): one start-up period shifting the weight onto
-   the right foot, then alternating steps of C_T / 2, with C_T following the commanded forward speed (short
-   steps to walk fast forward, long ones to walk fast backward). The command followed is the clock's
-   rate-limited one, which the policy observes.
-3. Footstep: the divergent component of motion (DCM) xi = c + c'/omega of the linear inverted pendulum is
-   predicted to the end of the step, xi_T = p + (xi - p) e^(omega t_remaining) around the stance foot's
-   centre p, and the swing foot lands at xi_T - b, with b the DCM offset of a periodic gait at the
-   commanded velocity (Khadiv et al., TRO 2020), at the clock's step time (the cadence is the step-timing
-   adaptation; within a step the time is fixed, so a student can follow it from the clock). BRUCE's line feet
-   have no ankle roll, so this is the only lateral balance there is; the stance ankle adds a little sagittal
-   balance by moving the centre of pressure within the foot.
-4. Swing: minimum-jerk horizontal motion from lift-off to the landing point (re-planned every tick until
-   the last part of the swing), a height bump, the sole kept level in the world.
-5. Stance: the leg's IK target holds the base at the nominal height *upright*, so the joint PD corrects the
-   torso's attitude through the stance hip; yaw turns through the stance hip yaw at the commanded rate.
-6. The Eq. 8 gains are low (20 Nm/rad at the hips and knee, 2.5 at the ankle), so the stance leg's gravity
-   load (J^T m g) and the swing leg's velocity feed-forward are folded into a_t:
-   a = q_des + (tau_ff + Kd qd_des) / Kp.
+It has the nominal controller's interface, a_t = teacher(state, base, command) at the policy rate, and the 1 kHz
+Eq. 8 PD turns a_t into torques, exactly as for the learned policy it is distilled into. Each policy tick: kinematics
+from the robot's own model; gait timing from the policy's clock (`gait.GaitClock`); the swing foot's landing point
+from the divergent component of motion xi = c + c'/omega predicted to the end of the step, less the periodic gait's
+offset at the commanded velocity (Khadiv et al., TRO 2020; BRUCE's line feet have no ankle roll, so this is the only
+lateral balance there is); a minimum-jerk swing with the sole level; a stance leg that holds the base upright at
+the nominal height and turns through the stance hip yaw. The Eq. 8 gains are low, so feed-forward torques (stance
+support, swing gravity and inertia) are folded into a_t: a = q_des + (tau_ff + Kd qd_des) / Kp.
 """
 
 from __future__ import annotations
@@ -35,7 +20,7 @@ import mujoco
 import numpy as np
 
 from bruce_hw.config import RobotConfig
-from bruce_hw.types import RobotState
+from bruce_hw.types import GRAVITY, RobotState
 from runtime.estimation import BaseEstimate
 from runtime.heading import HeadingReference
 from runtime.walking.gait import GaitClock, GaitPhase, interpolate, lipm_omega, min_jerk, swing_height
@@ -63,8 +48,8 @@ class TeacherParams:
     cop_gain: float = 2.0            # centre-of-pressure shift per m of DCM error (single stance)
     cop_front: float = 0.008         # m ahead of the foot centre at most (the toe is 0.0425 ahead)
     cop_back: float = 0.008          # m behind it at most (the heel is 0.0425 behind)
-    # Swing hip yaw at landing, relative to the base, at most: with no limit, 3 of 20 pushes of 1 N s (10 phases of
-    # the gait, both sides, walking at 0.4 m/s) ended in a yaw slip and a fall; with 0.10 rad, none.
+    # Swing hip yaw at landing, relative to the base, at most: after a push has yawed the base, a foot landing square
+    # to the heading swings the hip yaw far, and the reaction spins the stance foot on its contact points.
     swing_yaw_max: float = 0.10      # rad
     heading_correction_max: float = 0.02  # rad of stance hip yaw per tick: more twists the foot past its friction
     # Forward-speed offset that the footstep plan adds to the command, as (vx, offset) points, linear between them:
@@ -102,7 +87,7 @@ class WalkingTeacher:
         self.feet = [self.model.body(f"{side}_foot").id for side in SIDES]
         self.base = self.model.body("base").id
         self.mass = float(self.model.body_subtreemass[self.base])
-        self.mg = self.mass * 9.81
+        self.mg = self.mass * GRAVITY
         self.omega = lipm_omega(p.com_height)
         self.kp, self.kd = config.eq8.kp, config.eq8.kd
         self.jacp = np.zeros((3, self.model.nv))

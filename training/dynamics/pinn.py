@@ -4,29 +4,12 @@
     (f_n, dq) = head(LSTM([q, qd, tau]))           f_n: the lumped term of Eq. 4, dq: the Euler correction
     qdd = M^-1 (tau + f_n)                         Eq. 4
     q' = q + qd dt + dq,   qd' = qd + qdd dt       Eq. 6, explicit Euler: q' uses the old qd
-    q' in [lower, upper], qd' = 0 where q' stopped  the simulator's joint-range stops (below)
+    q' in [lower, upper], qd' = 0 where q' stopped  the simulator's joint-range stops (`set_joint_stop`)
 
-`PinnStep.forward(q, qd, tau, h, c) -> (q', qd', h', c')` is exactly one control tick with the LSTM state as
-explicit input and output, so the exported ONNX graph (training/export.py) is called once per tick and the
-caller feeds h', c' back (onnxruntime is stateless). Training unrolls the same module over windows against
-Eq. 7. Normalisation constants are buffers inside the module, so torch and onnxruntime apply identical scaling.
-M^-1 is assembled and applied, never inverted: with A = sqrt(dt) (L + bI), qdd dt = A^T (A (tau + f_n)).
-
-For export, `folded()` returns the same module with its constant scaling stages folded into the adjacent weights
-(the inputs' 1/std into the ResNet's first layer and the LSTM's input weights, the head's denormalisation into
-the head, the tril placement, bI and sqrt(dt) into the ResNet's output layer; the centring stays, because a
-mean folded into a bias cancels large terms in float32). Same math, 30 instead of 38
-kernels after onnxruntime's fusions: at 1 kHz the per-kernel cost, not FLOPs, sets the tick's latency
-(`bench/bench_pinn_step.py`).
-
-Joint-range stop. The simulator the PINN imitates stops every joint at its MJCF range, softly (MuJoCo's limit
-constraint lets walking push a straight knee 0.065-0.133 rad past 0). The network alone knows nothing of this: in a
-long open-loop rollout q drifts out of the training range, where the ResNet's linear skips extrapolate M^-1 until
-the rollout overflows (43 of 100 1000-step rollouts did). So the step states that physics: the input q is held
-inside [q_stop_lower, q_stop_upper], and a q' beyond it is put back on it with qd' = 0 (an inelastic stop). The
-range is the robot config's joint range, extended to what the training data reached, widened by JOINT_STOP_MARGIN,
-so on the data the stop never acts and teacher-forced training is unchanged by it. Without `set_joint_stop` the
-range is unbounded and the step is the paper's.
+`PinnStep.forward(q, qd, tau, h, c) -> (q', qd', h', c')` is one control tick with the LSTM state explicit, so the
+exported graph is called once per tick; training unrolls the same module over windows. The normalisation is held in
+buffers, so torch and onnxruntime scale alike; `folded()` folds it into the weights for export. The joint-range stop
+and the folding: docs/dynamics.md.
 """
 
 from __future__ import annotations
@@ -41,7 +24,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from training.normalisation import OptionalArray, register_input_statistics, set_statistic_buffers
+from training.dynamics.normalisation import OptionalArray, register_input_statistics, set_statistic_buffers
 
 if TYPE_CHECKING:
     from training.dataset import DatasetStats
@@ -159,7 +142,7 @@ class PinnStep(nn.Module):
         # Denormalisation of the head: f_n in torque units, dq in radians. Training fits them (issue #5).
         self.register_buffer("fn_scale", torch.ones(n))
         self.register_buffer("dq_scale", torch.ones(n))
-        # Joint-range stop (module docstring), raw radians; unbounded until set_joint_stop.
+        # Joint-range stop (docs/dynamics.md), raw radians; unbounded until set_joint_stop.
         self.register_buffer("q_stop_lower", torch.full((n,), -math.inf))
         self.register_buffer("q_stop_upper", torch.full((n,), math.inf))
 
@@ -278,7 +261,7 @@ class PinnStep(nn.Module):
 
     @torch.no_grad()
     def folded(self) -> PinnStep:
-        """An inference copy with the scaling stages folded into the weights (module docstring); same outputs to
+        """An inference copy with the scaling stages folded into the weights (docs/dynamics.md); same outputs to
         float32 rounding. Its stds and scales are reset to 1, so nothing is applied twice; the means stay."""
         if self.is_folded:
             return copy.deepcopy(self)

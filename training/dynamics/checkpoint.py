@@ -1,19 +1,9 @@
-"""Dynamics-model checkpoints and the registry of model kinds, shared by the trainer, the exporter and the evaluator.
+"""Dynamics-model checkpoints (`save_checkpoint`, `load_model_checkpoint`) and the registry of model kinds
+(`MODEL_KINDS`), shared by the trainer, the exporter and the evaluator.
 
-A checkpoint is a `torch.save` dict (loaded with `weights_only=True`: plain tensors, numbers, strings, lists and
-dicts only):
-
-| key            | what                                                                                  |
-|----------------|---------------------------------------------------------------------------------------|
-| `kind`         | a key of `MODEL_KINDS` ("pinn", "lstm", "olnn", "analytic")                          |
-| `config`       | the model's config dataclass as a dict (`dataclasses.asdict`)                        |
-| `state_dict`   | the model's parameters and buffers (normalisation included)                          |
-| `stats`        | the training split's `DatasetStats.to_json()`                                        |
-| `data`         | provenance of the training data: path, sha256, config_hash, split                    |
-| `train`        | the training settings (`TrainConfig` as a dict), `epoch` done, `history` of losses    |
-| `resume`       | optimizer, scheduler and RNG states (only while training; `bruce-train --resume`)     |
-
-Model kinds resolve lazily ("module:Class"), so a kind's module is imported only when it is used.
+A checkpoint is a `torch.save` dict loaded with `weights_only=True` (plain tensors, numbers, strings, lists and
+dicts only); its keys: docs/dynamics.md ("Checkpoints"). Model kinds resolve lazily ("module:Class"), so a kind's
+module is imported only when it is used.
 """
 
 from __future__ import annotations
@@ -44,11 +34,13 @@ class ModelKind:
 
 # The LSTM baseline has the PINN's tensor names, so the PINN's exporter (and the runtime's OnnxPinn) serve it too.
 MODEL_KINDS: dict[str, ModelKind] = {
-    "pinn": ModelKind("training.pinn:PinnStep", "training.pinn:PinnConfig", "training.export:export_pinn_onnx"),
-    "lstm": ModelKind("training.lstm_baseline:LstmStep", "training.lstm_baseline:LstmConfig",
-                      "training.export:export_pinn_onnx"),
-    "olnn": ModelKind("training.olnn:OlnnStep", "training.olnn:OlnnConfig", "training.olnn:export_olnn_onnx"),
-    "analytic": ModelKind("training.analytic:AnalyticModel", "training.analytic:AnalyticConfig"),
+    "pinn": ModelKind("training.dynamics.pinn:PinnStep", "training.dynamics.pinn:PinnConfig",
+                      "training.dynamics.export:export_pinn_onnx"),
+    "lstm": ModelKind("training.dynamics.lstm_baseline:LstmStep", "training.dynamics.lstm_baseline:LstmConfig",
+                      "training.dynamics.export:export_pinn_onnx"),
+    "olnn": ModelKind("training.dynamics.olnn:OlnnStep", "training.dynamics.olnn:OlnnConfig",
+                      "training.dynamics.olnn:export_olnn_onnx"),
+    "analytic": ModelKind("training.dynamics.analytic:AnalyticModel", "training.dynamics.analytic:AnalyticConfig"),
 }
 
 
@@ -86,7 +78,7 @@ def build_model(kind: str, config: dict | None = None) -> nn.Module:
 
 
 def save_checkpoint(path: str | Path, model: nn.Module, **extra) -> Path:
-    """Write a checkpoint for `model` (plus the module docstring's other keys in `extra`) atomically."""
+    """Write a checkpoint for `model` (plus the other keys of docs/dynamics.md in `extra`) atomically."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     payload = {"kind": kind_of(model), "config": dataclasses.asdict(model.config), "state_dict": model.state_dict(),

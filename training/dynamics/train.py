@@ -1,26 +1,14 @@
-"""Training of the dynamics models (the PINN and its learnt baselines) on simulator data: Eq. 7, TBPTT, AdamW.
+"""`bruce-train`: train a dynamics model (the PINN or a baseline) on a `bruce-collect` dataset, the paper's way.
 
     bruce-train --data data/walk.npz --model pinn [--preset paper|small] [--seed 0] [--epochs E]
                 --out runs/pinn_s0.pt [--resume]
 
-- Data: `training.dataset.load_dataset` (checked against the robot config), `split_by_time` 80/20 contiguous;
-  the normalisation statistics come from the training part only (`compute_stats` -> `model.fit_normalisation`).
-- Loss, Eq. 7 with each term normalised by the training spread of its one-step increment, so both count:
-  L = mean_t,j [ lambda_q ((q^'_tj - q'_tj) / s_q,j)^2 + lambda_qd ((qd^'_tj - qd'_tj) / s_qd,j)^2 ]
-  with s_q = std of the Euler residual q' - q - qd dt and s_qd = std of qd' - qd (`DatasetStats` q_inc_std,
-  qd_inc_std), lambda_q = lambda_qd = 1 by default. (Raw Eq. 7 at 1 kHz is dominated by the q term's tiny
-  increments being swamped by qd: normalised, a joint's error counts relative to how much it moves per tick.)
-- Teacher forcing, as Eq. 7 is a one-step loss: every step's inputs are the recorded (q, qd, tau).
-- Truncated BPTT (recurrent models): the training part is cut into windows of `window` transitions inside each
-  episode (a random offset each epoch moves the cuts), laid out as `streams` parallel streams; the LSTM state
-  carries (detached) from one window to the next of the same stream, and starts from zero where a stream starts
-  or enters a new episode. The first `burn_in` steps after such a fresh start are not counted in the loss: the
-  state is still warming up there (the evaluation warms every model up the same way). Stateless models see the
-  same windows, flattened into one batch of independent transitions.
-- Optimiser (the paper's): AdamW lr 1e-2, weight decay 1e-2, step decay x0.4 every 150 epochs, 1000 epochs;
-  gradient norm clipped at 1.0 (an LSTM at lr 1e-2 otherwise takes occasional destructive steps).
-- Checkpoints (`training.checkpoint`) every `checkpoint_every` epochs and at the end, with optimizer, scheduler
-  and RNG states: `--resume` continues an interrupted run where it stopped, with the same result.
+Contiguous 80/20 split by time, statistics from the training part only; Eq. 7 with each term divided by the
+training spread of its one-step increment (`Eq7Loss`), teacher-forced; truncated BPTT on windows inside episodes,
+the LSTM state carried from window to window of a stream, the first `burn_in` steps after a fresh state not
+counted; AdamW lr 1e-2, weight decay 1e-2, x0.4 every 150 epochs, 1000 epochs, gradient norm clipped at 1.
+Checkpoints every `checkpoint_every` epochs: --resume continues an interrupted run with the same result.
+`--model analytic` is identified by least squares instead. Details: docs/dynamics.md.
 """
 
 from __future__ import annotations
@@ -41,7 +29,6 @@ from torch import nn
 from tqdm import tqdm
 
 from bruce_hw.config import ConfigError, load_config
-from training.checkpoint import CheckpointError, build_model, read_checkpoint, save_checkpoint
 from training.dataset import (
     Dataset,
     DatasetError,
@@ -52,7 +39,8 @@ from training.dataset import (
     split_by_time,
     windows,
 )
-from training.pinn import PinnStep, joint_stop_range
+from training.dynamics.checkpoint import CheckpointError, build_model, read_checkpoint, save_checkpoint
+from training.dynamics.pinn import PinnStep, joint_stop_range
 
 
 @dataclass(frozen=True)
@@ -67,7 +55,7 @@ class TrainConfig:
     burn_in: int = 50        # uncounted steps after a fresh (zero) LSTM state
     lambda_q: float = 1.0
     lambda_qd: float = 1.0
-    grad_clip: float = 1.0
+    grad_clip: float = 1.0   # gradient norm: an LSTM at lr 1e-2 otherwise takes occasional destructive steps
     train_fraction: float = 0.8
     checkpoint_every: int = 25
     seed: int = 0
@@ -101,7 +89,8 @@ TRAIN_PRESETS: dict[str, dict] = {
 
 
 class Eq7Loss:
-    """Eq. 7 with per-joint normalisation of each term (module docstring)."""
+    """Eq. 7 with each term divided by the training spread of its one-step increment (`DatasetStats` q_inc_std,
+    qd_inc_std), per joint; lambda_q and lambda_qd weigh the terms."""
 
     def __init__(self, stats: DatasetStats, lambda_q: float, lambda_qd: float):
         self.q_weight = torch.as_tensor(lambda_q / stats.q_inc_std ** 2, dtype=torch.float32)
@@ -235,7 +224,7 @@ def _identify_analytic(train_part: Dataset, stats: DatasetStats, robot_config, o
                        config: TrainConfig, command: str | None) -> dict:
     """The analytic baseline: identified by least squares (deterministic; the seed only draws the states of its
     positive-definiteness check), saved as a checkpoint like the trained models."""
-    from training.analytic import AnalyticConfig, identify_dataset
+    from training.dynamics.analytic import AnalyticConfig, identify_dataset
 
     model = identify_dataset(train_part, AnalyticConfig.from_robot_config(robot_config), seed=config.seed)
     extra = {"stats": stats.to_json(), "data": provenance,

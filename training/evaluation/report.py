@@ -1,5 +1,5 @@
 """The evaluation's report: strict JSON, the Markdown table, and the paper's Fig. 4 and Fig. 5 as PNG
-(`bruce-eval dynamics`, training/evaluate.py computes what they show)."""
+(`bruce-eval dynamics`, training/evaluation/dynamics_eval.py computes what they show)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from training.evaluate import EvalData
+    from training.evaluation.dynamics_eval import EvalData
 
 BOUND_FACTOR = 10.0  # a rollout is bounded while it stays within this many times the data's range about its centre
 

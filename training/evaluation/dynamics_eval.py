@@ -1,59 +1,12 @@
 """`bruce-eval dynamics`: held-out accuracy and per-step cost of the learned dynamics models (issue #5, §IV-B).
 
-    bruce-eval dynamics --data PATH --model NAME=CKPT[,CKPT...] [--model ...] --out DIR
-                        [--k 10,100,1000] [--starts 100] [--warmup 200] [--start-seed S] [--chunk 1000]
-                        [--onnx NAME=FILE] [--no-onnx] [--timing-calls 2000] [--train-fraction 0.8] [--config PATH]
-
-Every model follows the shared interface: `n_joints`, `dt`, `initial_state(batch) -> tuple` (empty when
-stateless) and `forward(q, qd, tau, *state) -> (q_next, qd_next, *state_next)` on float32 [B, n_joints].
-
-**Data.** A dataset `.npz` (`training.dataset`: arrays q, qd, tau [T, n], episode [T], scalar dt, metadata), read
-with `load_dataset`, so a file that does not match the robot config fails naming the problem. The test split is
-`split_by_time`'s test part: the last samples, contiguous in time, [round(T * train_fraction), T). A *run*
-is a maximal stretch of the test split inside one episode; nothing below ever crosses a run's ends (episode
-boundaries, falls, the split boundary). A *valid transition* is t -> t+1 inside one run.
-
-**Metrics.** All NMSEs are per joint, then averaged over the joints (the per-joint values are in the JSON):
-
-    NMSE_j = mean over samples of (x_hat_j - x_j)^2  /  var(x_j),   var with ddof = 0 over the test split.
-
-- One-step (teacher-forced) NMSE on increments. For every scored transition t the model is given the recorded
-  (q[t], qd[t], tau[t]) and its state, and predicts (q_hat[t+1], qd_hat[t+1]). The q metric compares the increment
-  q_hat[t+1] - q[t] with the true q[t+1] - q[t] (i.e. the error q_hat[t+1] - q[t+1]) and divides by the variance of
-  the true increments q[t+1] - q[t] over all valid test transitions; likewise for qd with qd[t+1] - qd[t]. (One-step
-  NMSE of q itself is ~0 for any model at 1 kHz, because q[t+1] ~ q[t].) Scored transitions are the valid ones with
-  at least W teacher-forced steps of the same run before them. A recurrent model is run teacher-forced over
-  chunks of `--chunk` consecutive scored transitions, each chunk preceded by W teacher-forced warm-up steps from
-  a zero state (`initial_state`); its state carries through the chunk.
-- Open-loop K-step NMSE, for each K in `--k`. From N start points s (the same for every model and every K) the
-  model is warmed up with the W teacher-forced steps s-W .. s-1 from a zero state (stateless models skip it),
-  then rolled out from the recorded (q[s], qd[s]) for K steps on its own predictions with the recorded
-  tau[s .. s+K-1]. The error is taken at EVERY step 1..K of the rollout (a "simulation error", not only the end
-  point) and divided by the variance of q (resp. qd) over all samples of the test split. A start point s needs
-  s-W .. s+K_max inside one run; N of the eligible ones are taken evenly spaced (or at random with
-  `--start-seed`). The K-step rollouts are one K_max rollout read at K, so smaller K are prefixes of larger.
-- Bounded rollout: the K_max rollout of every start stays finite and inside the data's interval widened 10x about
-  its centre, per joint, for q and qd (|x_hat - mid| <= 10 * half_range; the worst ratio is reported).
-- Per-step compute time at batch 1, of the first checkpoint of each model (cost does not depend on the weights):
-  torch eager under `torch.inference_mode()` with one intra-op thread, and onnxruntime where an ONNX file is
-  given (`--onnx`) or the model's kind has an exporter: the runtime's `OnnxPinn.step` for the PINN signature
-  (q, qd, tau, h, c), otherwise one `run_with_iobinding` on fixed bound buffers, the recurrent state ping-ponged
-  between two bindings. Each call carries the state into the next with a fixed recorded input; contenders are
-  interleaved in blocks, on one pinned core, with the garbage collector off. Median and p99 in µs. The ORT/torch
-  parity over 200 recorded steps (`training.export.rollout_parity`) is reported next to it.
-- Several checkpoints for one model name (`--model lstm=a.pt,b.pt,c.pt`, e.g. seeds) are evaluated alike and
-  summarised as mean ± std across them (std with ddof = 1; none for a single checkpoint).
-
-**Checkpoints**: `training.checkpoint` files (a `torch.save`d dict with "kind", "config", "state_dict", ...; its
-`MODEL_KINDS` registry builds the model), read with `training.checkpoint.load_model_checkpoint`. The ONNX file for
-the onnxruntime timing comes from `--onnx` or from the kind's exporter in that registry. A checkpoint whose "data"
-record names another file's SHA-256 is flagged (its test split here may overlap what it trained on).
-The whole run uses one torch thread: the rollouts are long chains of small calls, which a second thread slows.
-
-**Outputs** in --out: `dynamics_eval.json` (every number, the data file's SHA-256, the split, K list, start points,
-warm-up), `dynamics_eval.md` (the table), `fig4_joint0_rollout.png` (joint 0's q and qd over one K_max rollout:
-ground truth, each model's first checkpoint, and their errors) and `fig5_nmse_runtime.png` (NMSE bars at
-K = 100, or the K nearest to it, log scale, and per-step compute time).
+Every model has the shared interface: `n_joints`, `dt`, `initial_state(batch) -> tuple` (empty when stateless) and
+`forward(q, qd, tau, *state) -> (q_next, qd_next, *state_next)` on float32 [B, n_joints]. On the test split of a
+dataset (`split_by_time`, as the trainer splits it), cut into runs that cross no episode boundary
+(`training.episodes`): one-step NMSE on increments, open-loop K-step NMSE from the same start points after the same
+teacher-forced warm-up, a bounded-rollout check, and per-step compute at batch 1 in torch and onnxruntime with
+their parity. The definitions and the outputs (`dynamics_eval.json`, `.md`, Fig. 4 and Fig. 5 as PNG):
+docs/dynamics.md ("Evaluation protocol"). The parser is `training.evaluation.cli`'s.
 """
 
 from __future__ import annotations
@@ -77,10 +30,11 @@ import torch
 from torch import nn
 
 from bruce_hw.config import ConfigError, RobotConfig
-from training.checkpoint import MODEL_KINDS, CheckpointError, load_model_checkpoint
 from training.dataset import DatasetError, file_sha256, load_dataset, split_by_time
-from training.eval_report import BOUND_FACTOR, bar_k, json_safe, markdown_table, plot_fig4, plot_fig5
-from training.export import rollout_parity
+from training.dynamics.checkpoint import MODEL_KINDS, CheckpointError, load_model_checkpoint
+from training.dynamics.export import rollout_parity
+from training.episodes import episode_runs, run_indices
+from training.evaluation.report import BOUND_FACTOR, bar_k, json_safe, markdown_table, plot_fig4, plot_fig5
 
 PARITY_STEPS = 200
 ONE_STEP_BATCH = 4096  # stateless models: transitions per forward call
@@ -113,15 +67,6 @@ class EvalData:
         return self.q.shape[1]
 
 
-def episode_runs(episode: np.ndarray, start: int, stop: int) -> tuple[tuple[int, int], ...]:
-    """Maximal [a, b) stretches of [start, stop) with one episode id."""
-    if stop <= start:
-        return ()
-    cuts = start + 1 + np.flatnonzero(np.diff(episode[start:stop]) != 0)
-    edges = [start, *cuts.tolist(), stop]
-    return tuple((int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True))
-
-
 def load_eval_data(path: str | Path, config: RobotConfig, train_fraction: float = 0.8) -> EvalData:
     """Read a dataset with `training.dataset.load_dataset` (its checks against the robot config) and take its test
     part with `split_by_time`, so the evaluator and the trainer split by construction alike."""
@@ -150,29 +95,11 @@ def checked_variance(values: np.ndarray, what: str) -> np.ndarray:
     return variance
 
 
-def valid_transitions(runs: Sequence[tuple[int, int]]) -> np.ndarray:
-    """Every t with t, t+1 in one run."""
-    parts = [np.arange(a, b - 1) for a, b in runs]
-    return np.concatenate(parts) if parts else np.zeros(0, np.int64)
-
-
-def scored_transitions(runs: Sequence[tuple[int, int]], warmup: int) -> np.ndarray:
-    """Valid transitions with at least `warmup` teacher-forced steps of their run before them."""
-    parts = [np.arange(a + warmup, b - 1) for a, b in runs if a + warmup < b - 1]
-    return np.concatenate(parts) if parts else np.zeros(0, np.int64)
-
-
-def eligible_starts(runs: Sequence[tuple[int, int]], warmup: int, horizon: int) -> np.ndarray:
-    """Start points s with s - warmup .. s + horizon inside one run."""
-    parts = [np.arange(a + warmup, b - horizon) for a, b in runs if a + warmup < b - horizon]
-    return np.concatenate(parts) if parts else np.zeros(0, np.int64)
-
-
 def select_start_points(runs: Sequence[tuple[int, int]], warmup: int, horizon: int, count: int,
                         seed: int | None = None) -> np.ndarray:
     """`count` start points (sorted), evenly spaced over the eligible ones, or drawn without replacement with
     `seed`; fewer when fewer are eligible. None eligible is an EvalError."""
-    eligible = eligible_starts(runs, warmup, horizon)
+    eligible = run_indices(runs, before=warmup, after=horizon)
     if eligible.size == 0:
         longest = max((b - a for a, b in runs), default=0)
         raise EvalError(f"no start point fits a warm-up of {warmup} and a {horizon}-step rollout inside one run of "
@@ -198,7 +125,8 @@ class LoadedModel:
 
 
 def load_checkpoint(path: str | Path) -> LoadedModel:
-    """A `training.checkpoint` file -> its float32 model in eval mode, its kind and its training-data record."""
+    """A `training.dynamics.checkpoint` file -> its float32 model in eval mode, its kind and its training-data
+    record."""
     model, payload = load_model_checkpoint(path)
     trained_on = payload.get("data") if isinstance(payload.get("data"), dict) else None
     return LoadedModel(payload["kind"], Path(path), model.float().eval(), trained_on)
@@ -243,7 +171,7 @@ def teacher_forced_warmup(model: nn.Module, arrays: Sequence[torch.Tensor], firs
 @torch.no_grad()
 def one_step_predictions(model: nn.Module, data: EvalData, transitions: np.ndarray, warmup: int,
                          chunk: int) -> tuple[np.ndarray, np.ndarray]:
-    """(q_hat[t+1], qd_hat[t+1]) for each scored transition t (module docstring), float64 [N, n] each."""
+    """(q_hat[t+1], qd_hat[t+1]) for each scored transition t (docs/dynamics.md), float64 [N, n] each."""
     arrays = _tensors(data)
     q, qd, tau = arrays
     if is_stateless(model):
@@ -325,7 +253,7 @@ def bounded_check(q_pred: np.ndarray, qd_pred: np.ndarray, data: EvalData) -> di
 def evaluate_model(model: nn.Module, data: EvalData, protocol: Protocol) -> tuple[dict, dict]:
     """All accuracy numbers of one model, and the traces of its first rollout (for Fig. 4)."""
     test = slice(data.test_start, None)
-    valid = valid_transitions(data.runs)
+    valid = run_indices(data.runs)
     q_inc_var = checked_variance(data.q[valid + 1] - data.q[valid], "q increments")
     qd_inc_var = checked_variance(data.qd[valid + 1] - data.qd[valid], "qd increments")
     q_var, qd_var = checked_variance(data.q[test], "q"), checked_variance(data.qd[test], "qd")
@@ -502,7 +430,7 @@ def export_for_timing(loaded: LoadedModel, directory: Path) -> Path | None:
 
 def measure_compute(models: dict[str, LoadedModel], onnx_files: dict[str, Path | None], data: EvalData,
                     sample: int, calls: int, exported: frozenset[str] = frozenset()) -> dict[str, dict]:
-    """Per-step compute per model name (see module docstring); `exported` names the models whose ONNX file was
+    """Per-step compute per model name (docs/dynamics.md); `exported` names the models whose ONNX file was
     exported for this run (a temporary file: only its hash is kept)."""
     q, qd, tau = data.q[sample], data.qd[sample], data.tau[sample]
     contenders, modes, paths = {}, {}, {}
@@ -531,7 +459,6 @@ def measure_compute(models: dict[str, LoadedModel], onnx_files: dict[str, Path |
     return compute
 
 
-# -- outputs ---------------------------------------------------------------------------------------------------
 # -- CLI -------------------------------------------------------------------------------------------------------
 def parse_named_paths(items: Sequence[str], option: str) -> dict[str, list[Path]]:
     named: dict[str, list[Path]] = {}
@@ -566,7 +493,7 @@ def run_dynamics(args: argparse.Namespace, argv: Sequence[str]) -> int:
     if args.warmup < 0 or args.chunk < 1:
         raise EvalError(f"--warmup must be >= 0 and --chunk >= 1, got {args.warmup} and {args.chunk}")
     starts = select_start_points(data.runs, args.warmup, max(ks), args.starts, args.start_seed)
-    transitions = scored_transitions(data.runs, args.warmup)
+    transitions = run_indices(data.runs, before=args.warmup)
     if transitions.size == 0:
         raise EvalError(f"no one-step transition of the test split has {args.warmup} warm-up steps in its run")
     protocol = Protocol(ks, args.warmup, starts, transitions, args.chunk)
@@ -656,7 +583,7 @@ def run_dynamics(args: argparse.Namespace, argv: Sequence[str]) -> int:
 
 
 def main_dynamics(args: argparse.Namespace, argv: Sequence[str]) -> int:
-    """`bruce-eval dynamics` (the parser is `training.eval_cli`'s, which loads torch only for this command)."""
+    """`bruce-eval dynamics` (the parser is `training.evaluation.cli`'s, which loads torch only for this command)."""
     # One intra-op thread: the rollouts are long chains of small batched calls, where a second thread only adds
     # synchronisation (measured ~10-50x slower on the shared 2-core VM); the timing is per-thread anyway.
     threads = torch.get_num_threads()

@@ -1,42 +1,13 @@
 """`bruce-eval transfer`: the paper's sim-to-real experiments (§IV-C, Figs. 6-10), rehearsed in the mock.
 
-The nominal mock is "the simulator", the mock with a reality-gap profile (`configs/gaps/`) is "the robot". Every
-experiment runs the same nominal controller (the committed walking policy by default) on the same command schedule:
-
-- once in the nominal mock with Eq. 8 alone: the reference, what the simulator does;
-- on the gapped mock under direct transfer (Eq. 8 alone) and under PINN transfer (Eq. 9, the committed PINN's
-  prediction of the simulator's next joint state as the reference), once per seed of the gap's noise.
-
-Experiments (20 s each by default):
-- tracking, vx = 0.4 m/s: joint RMSE against the nominal run, tick by tick (the gait is locked to the policy clock,
-  so the runs stay in phase); joint-0 angle, velocity and torque traces, its phase portrait, the forward velocity
-  (Fig. 6);
-- circle, vx = 0.4 m/s and yaw rate 0.4 rad/s: the base path against the ideal circle of radius vx / wz through the
-  start pose, mean radial deviation (Fig. 7);
-- reverse at -0.5 m/s and turning in place at 0.5 rad/s: falls, drift (the final distance from the commanded
-  path: the straight line back; the start point when turning in place), speed traces (Figs. 8-10).
-
-Sweeps: the tracking RMSE as the actuator latency grows and as the Eq. 9 gains are scaled, for both modes.
-
-Every metric is scored after the start-up transient (`runtime.run.TRACKING_SKIP_S`), on the simulator's ground
-truth (joint angles and base pose without the gap's sensor noise or latency). A run ends where it falls (the
-safety stage trips on tilt); its metrics cover the part before. Per run: `joint_rmse` and its split into `offset`
-(RMS over joints of each joint's mean error) and `shape` (RMS of the rest; offset² + shape² = RMSE² per joint); on
-the circle `mean_radial_deviation` from the ideal circle and `mean_deviation_from_simulator`, the distance from the
-nominal run's base position at the same tick (the simulator itself misses the ideal circle by ~0.1 m, so only the
-latter measures transfer).
-
-Profiles: `--gap A,B,...` or `--suite NAME` (`SUITES`) evaluates each profile; the sweeps run on the first. Output:
-DIR/transfer.json keeps the one-profile layout for the first profile (per experiment and mode: `joint_rmse`,
-`mean_radial_deviation`, `fell`, `falls`, `drift`, ...; `sweeps`), plus `recommended` and `acceptance` (per mode,
-each bar of issue 20 with value, limit and pass: `training.transfer_acceptance`), and with several profiles
-`profiles.<name>` holding each profile's report in that same layout (the first's too). DIR/transfer.md, PNG figures
-(the first profile). Each run's metrics are cached under DIR/runs (`training.transfer_cache`): a second call with
-the same DIR runs only what is missing, so an interrupted suite resumes. The whole acceptance table is one command:
-
-    bruce-eval transfer --suite acceptance --experiments tracking,circle --seeds 0,1,2 --sweep-seeds 0,1 \\
-        --latencies-ms 4,6,7 --gain-scales '' --schemes pinn,shadow,shadow@nominal,observer,observer@nominal \\
-        --out DIR
+The nominal mock is "the simulator", the mock with a reality-gap profile (`configs/gaps/`) "the robot". Every
+experiment (`EXPERIMENTS`: tracking, circle, reverse, turn) runs the same nominal controller on the same command
+schedule once in the nominal mock, the reference, and on the gapped mock under each transfer mode, once per gap
+seed; the sweeps vary the actuator latency and the Eq. 9 gains. Runs are scored on the simulator's truth after the
+start-up transient and up to a fall (`run_metrics`). Output: DIR/transfer.json (with the acceptance of
+`training.evaluation.transfer_acceptance`), DIR/transfer.md and figures; each run is cached under DIR/runs
+(`training.evaluation.transfer_cache`), so an interrupted suite resumes. Experiments, metrics and the output's
+layout: docs/transfer.md ("How the rehearsal runs").
 """
 
 from __future__ import annotations
@@ -54,13 +25,13 @@ from pathlib import Path
 import numpy as np
 
 from bruce_hw.config import DEFAULT_CONFIG, REFERENCE_MODELS, TRANSFER_SCHEMES, ConfigError, PdGains, load_config
+from bruce_hw.quaternion import euler_of
 from bruce_hw.reality_gap import GapError, RealityGap, latency_ticks, load_gap
 from runtime.commands import CommandSchedule
-from runtime.estimation import euler_of
 from runtime.observers import TRACKING_SKIP_S, TickObserver, heading_velocity
-from training.eval_report import json_safe
-from training.transfer_acceptance import ONE_FACTOR_PROFILES, acceptance, latency_tolerance, recommended
-from training.transfer_cache import RunCache, spec_key, trace
+from training.evaluation.report import json_safe
+from training.evaluation.transfer_acceptance import ONE_FACTOR_PROFILES, acceptance, latency_tolerance, recommended
+from training.evaluation.transfer_cache import RunCache, spec_key, trace
 
 MODES = ("direct", "pinn")
 LOOKAHEAD_MODE = "pinn_ahead"  # Eq. 9 with the reference rolled ahead over the gap's latency (not the paper's)
@@ -489,8 +460,8 @@ def _profile_label(spec: RunSpec) -> str:
 def execute(specs: list[RunSpec], out: Path, jobs: int, keep: list[RunSpec] = (),
             progress: bool = True) -> RunResults:
     """Run every distinct spec once (the nominal references first), `jobs` at a time, each run's metrics (and the
-    records kept: nominal runs and `keep`) cached under OUT/runs as it finishes (`training.transfer_cache`); what
-    the cache already holds is not run again."""
+    records kept: nominal runs and `keep`) cached under OUT/runs as it finishes (`transfer_cache`); what the cache
+    already holds is not run again."""
     cache = RunCache(Path(out) / "runs")
     unique: dict[str, RunSpec] = {}
     for spec in specs:

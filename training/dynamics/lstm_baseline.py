@@ -3,10 +3,11 @@
     (dq, dqd) = head(LSTM([q, qd, tau]))     normalised inputs, 3 layers x 72 units like the PINN's LSTM
     q' = q + dq,   qd' = qd + dqd           no M^-1, no Euler step: the increments are learnt outright
 
-Same interface, size and training as `training.pinn.PinnStep` (one tick for [B, n] inputs, a teacher-forced window
-for [W, B, n]; LSTM state explicit; exported with the PINN's tensor names, so `runtime.inference.OnnxPinn` runs it
-too). The head's outputs are scaled to the increments' training spread: dqd by the spread of qd' - qd, and dq by
-qd_std * dt (q' - q is mostly qd dt at 1 kHz). Parameters: 115,508 at the paper's sizes vs the PINN's 123,055.
+Same interface, size and training as `training.dynamics.pinn.PinnStep` (one tick for [B, n] inputs, a
+teacher-forced window for [W, B, n]; LSTM state explicit; exported with the PINN's tensor names, so
+`runtime.inference.OnnxPinn` runs it too). The head's outputs are scaled to the increments' training spread: dqd
+by the spread of qd' - qd, and dq by qd_std * dt (q' - q is mostly qd dt at 1 kHz). Parameters: 115,508 at the
+paper's sizes vs the PINN's 123,055.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from training.normalisation import set_statistic_buffers
+from training.dynamics.normalisation import set_statistic_buffers
 
 if TYPE_CHECKING:
     from training.dataset import DatasetStats

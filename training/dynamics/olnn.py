@@ -1,45 +1,14 @@
 """OLNN baseline (Gupta et al. 2019, structured mechanical models): Lagrangian dynamics from three networks, RK4.
 
-    M(q) = L'(q) L'(q)^T,  L' = S L               L lower-triangular from an MLP on q, diagonal softplus(.) + eps > 0,
-                                                  S = diag(sqrt(m_scale)) a fitted inertia scale: M is always SPD
+    M(q) = L'(q) L'(q)^T,  L' = S L               L lower-triangular from an MLP on q, positive diagonal: M is SPD
     g(q) = dV/dq                                  V(q) a scalar potential-energy MLP on q
-    F(q, qd, tau)                                 generalised non-conservative force, an MLP on [q, qd, tau]
-    c(q, qd) = Mdot qd - 1/2 d(qd^T M qd)/dq      Coriolis/centrifugal terms (Christoffel symbols of M)
-    qdd = M^-1 (tau + F - c - g)                  solved through the Cholesky factor L', never M^-1 assembled
-    (q', qd') = RK4, 3/8 rule, over dt            four dynamics evaluations per step, tau held (zero-order hold)
+    F(q, qd, tau)                                 non-conservative force (friction, actuator, contact), an MLP
+    c(q, qd) = Mdot qd - 1/2 d(qd^T M qd)/dq      Coriolis/centrifugal terms
+    qdd = M^-1 (tau + F - c - g),  (q', qd') = RK4 (3/8 rule) over dt with tau held
 
-What the force network sees: the normalised [q, qd, tau] of the 10 leg joints. It is where everything that is not
-rigid-body inertia or a potential enters: joint friction and damping (qd), the actuator (tau) and, above all,
-ground contact. BRUCE's base is floating and unobserved by this model, so contact forces can only be inferred from
-the joint configuration, velocity and torque, as in the PINN's LSTM (which additionally has memory).
-
-Two implementations of the same math share one set of parameters:
-- `derivatives="autograd"` (the reference, Gupta's recipe): M(q), V(q) as networks; Mdot qd, the kinetic-energy
-  gradient and dV/dq by torch.autograd.grad (create_graph=True when gradients are on, so it trains), solved with
-  torch.cholesky_solve. Costs n + 2 backward passes per evaluation.
-- `derivatives="analytic"` (the default, for training and export): the same derivatives written out. Mdot qd needs
-  only the directional derivative of L along qd (one forward-mode tangent through the mass MLP), and
-  1/2 d(qd^T M qd)/dq_k = qd^T (dL'/dq_k) u with u = L'^T qd is one vector-Jacobian product (one reverse pass written
-  as plain matmuls); dV/dq is one reverse pass through the potential MLP. So an evaluation costs about three passes
-  of the mass MLP instead of n + 2, and it is a plain graph: differentiable for training and exportable
-  (torch.onnx.export rejects autograd.grad). M^-1 rhs is two triangular solves with L'; ONNX has no triangular
-  solve, so the exported graph inverts the triangular factor exactly instead: L = D (I + N) with N strictly lower
-  (nilpotent), (I + N)^-1 = (I - N)(I + N^2)(I + N^4)(I + N^8) for n <= 16 (ceil(log2 n) factors in general), six
-  batched matmuls for n = 10, as accurate in float32 as the triangular solves (measured); M itself is never
-  inverted. tests/test_olnn.py checks this path against the reference and the ONNX graph against torch.
-
-Scales (fitted from the training split by `fit_normalisation`, buffers so they travel with state_dict and export):
-inputs are standardised by the per-joint mean/std of q, qd and tau; m_scale = tau_std / qdd_std with
-qdd_std = qd_inc_std / dt, so an untrained M is of the data's inertia scale; F = tau_std * net; V = v_scale * net
-with the scalar v_scale = mean(tau_std * q_std), so dV/dq is of torque size (a per-joint scale would not be the
-gradient of a potential).
-
-Sizes (default `OlnnConfig`): mass MLP 10 -> 64 -> 64 -> 64 -> 55 (12,599 parameters), potential MLP
-10 -> 64 -> 64 -> 64 -> 1 (9,089), force MLP 30 -> 192 -> 192 -> 192 -> 10 (81,994), tanh: 103,682 parameters, the
-range of the paper's PINN (123,055). The capacity sits in the force MLP, which needs no derivatives, rather than in
-the mass MLP, whose derivatives cost three passes in each of the four RK4 evaluations (a 10-joint inertia matrix is a
-smooth, low-frequency function of q). An untrained model has F = 0 and V = 0 (zero last layers, like the PINN's zero
-head), i.e. qdd = M^-1 (tau - c).
+`derivatives="autograd"` is the reference (torch.autograd.grad); `"analytic"` (the default, for training and
+export) writes the same derivatives out as plain, exportable ops. The derivation, the exported triangular inverse,
+the scales and the sizes: docs/dynamics.md ("The OLNN baseline").
 """
 
 from __future__ import annotations
@@ -54,9 +23,9 @@ import torch
 from torch import nn
 from torch.nn import functional
 
-from training.export import ExportError, _export_checked
-from training.normalisation import OptionalArray, register_input_statistics, set_statistic_buffers
-from training.pinn import tril_placement
+from training.dynamics.normalisation import OptionalArray, register_input_statistics, set_statistic_buffers
+from training.dynamics.pinn import tril_placement
+from training.onnx_export import ExportError, export_checked
 
 if TYPE_CHECKING:
     from training.dataset import DatasetStats
@@ -210,7 +179,7 @@ class OlnnStep(nn.Module):
                                      "v_scale": v_scale}, "OlnnStep.set_normalisation")
 
     def fit_normalisation(self, stats: DatasetStats) -> None:
-        """Input statistics and output scales from the training split (module docstring, "Scales")."""
+        """Input statistics and output scales from the training split (docs/dynamics.md, the OLNN's scales)."""
         qdd_std = np.asarray(stats.qd_inc_std, dtype=np.float64) / self.dt
         tau_std = np.asarray(stats.tau_std, dtype=np.float64)
         q_std = np.asarray(stats.q_std, dtype=np.float64)
@@ -263,7 +232,8 @@ class OlnnStep(nn.Module):
     # --- accelerations ---------------------------------------------------------------------------------------------
 
     def _lower_inverse(self, factor: torch.Tensor) -> torch.Tensor:
-        """L'^-1 for a lower-triangular L' with a positive diagonal, by the exact nilpotent product (docstring)."""
+        """L'^-1 for a lower-triangular L' with a positive diagonal: L' = D (I + N), N strictly lower (nilpotent),
+        (I + N)^-1 = (I - N)(I + N^2)(I + N^4)..., exact after `unit_lower_inverse_factors(n)` factors."""
         n = self.n_joints
         eye = torch.eye(n, dtype=factor.dtype, device=factor.device)
         diag = (factor * eye).sum(2, keepdim=True)  # [B, n, 1]
@@ -276,7 +246,7 @@ class OlnnStep(nn.Module):
         return inverse / diag.transpose(1, 2)  # (I + N)^-1 D^-1: column j divided by d_j
 
     def accel_analytic(self, q: torch.Tensor, qd: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
-        """qdd [B, n] with derivatives written out (module docstring); plain ops, exportable."""
+        """qdd [B, n] with derivatives written out (docs/dynamics.md); plain ops, exportable."""
         n = self.n_joints
         s = self.m_scale.sqrt()
         factor, slopes, gate = self._factor(q, with_slopes=True)
@@ -370,7 +340,7 @@ def export_olnn_onnx(model: OlnnStep, path: str | Path, *, opset: int = 17) -> P
     saved = model.derivatives
     model.derivatives = "analytic"  # autograd.grad cannot be exported
     try:
-        return _export_checked(
+        return export_checked(
             model, example, path, input_names=("q", "qd", "tau"), output_names=("q_next", "qd_next"), opset=opset,
             op_counts={},
             metadata={"kind": "olnn_step", "n_joints": n, "dt": config.dt, "integrator": "rk4_3/8",

@@ -1,50 +1,13 @@
 """The analytic Euler–Lagrange baseline (issue #5, item 3): a rigid-body model of BRUCE's legs whose joint torques are
 linear in its parameters, identified by least squares from the same (q, qd, tau) data as the PINN.
 
-Model. Each leg is a fixed-base serial chain hanging from the pelvis, read from the MuJoCo model (body_pos,
-body_quat, jnt_axis, the joint-to-body tree; the 10 joints as serial hinges, as in the MJCF: the hip differential
-and the knee/ankle linkage are joint-space maps outside the dynamics, bruce_hw/coupling.py):
+    tau = M(q) qdd + C(q, qd) qd + g(q) + armature qdd + viscous qd + coulomb tanh(qd / v_c) = Y(q, qd, qdd) pi
 
-    tau = M(q) qdd + C(q, qd) qd + g(q) + armature * qdd + viscous * qd + coulomb * tanh(qd / v_c)
-        = Y(q, qd, qdd) pi                                                            (linear in pi)
-
-pi stacks, per leg body in the config's joint order, the 10 standard inertial parameters in the body frame
-(m, m*c_x, m*c_y, m*c_z, I_xx, I_xy, I_yy, I_xz, I_yz, I_zz; inertia about the body origin, Pinocchio's order),
-then per joint the armature (rotor inertia), the viscous and the Coulomb coefficient (tanh smoothing v_c, so the
-term stays linear in its coefficient): 13 * 10 = 130 parameters for BRUCE. Y comes from a recursive Newton–Euler
-pass (spatial algebra in body coordinates, Featherstone's conventions) written in torch, dtype-generic.
-
-Contact and the floating base are NOT represented, which is the point of this baseline: the pelvis is fixed in the
-world, upright (gravity taken from the model at the base's reference orientation), with zero velocity and
-acceleration; no ground reaction forces enter. During stance the recorded torques mostly hold the body up through
-the foot, so a fixed-base model is misspecified there, and the identified parameters absorb what they can of it.
-
-Identification (`identify`, or `identify_dataset` on a training split): ordinary inverse-dynamics least squares
-tau = Y(q, qd, qdd) pi in float64 over the valid transitions t -> t+1 (same episode), with
-qdd[t] = (qd[t+1] - qd[t]) / dt, a FORWARD difference: tau[t] is held over [t, t+1] (zero-order hold) and MuJoCo
-advances qd[t+1] = qd[t] + dt qdd[t] with qdd[t] computed at (q[t], qd[t], tau[t]), so this is the acceleration the
-simulator actually applied (its implicit joint damping adds dt * damping = 1e-5 kg m^2 to the effective armature,
-which the fit absorbs); a central difference would mix two different torques. The regressor is streamed through a
-QR factorisation in chunks (never held whole), one least-squares problem per leg (with a fixed base the legs do not
-interact). Then, per leg: columns are scaled to unit norm, and columns at rounding level (< 1e-10 of the largest:
-structurally zero, e.g. a link's first moment along its own joint axis) are dropped; singular directions below
-`rcond` * the largest are dropped (the structurally unidentifiable combinations, e.g. a hip-yaw link's I_xx, which no
-motion of a fixed-base leg excites); the rest is solved with a ridge term `ridge` * s_max^2 in the scaled
-coordinates, i.e. the minimum-norm, lightly damped solution. The parameters are therefore base-parameter
-combinations, not physically consistent link parameters (no mass > 0 or triangle-inequality constraints).
-
-Positive definiteness. Least squares does not guarantee a positive-definite M(q). After the fit, lambda_min(M(q))
-is evaluated on the training states plus random states inside the joint ranges; if it is below
-`min_mass_eigenvalue`, every armature is raised by the shortfall (adding c*I raises every eigenvalue by exactly c),
-and the shift is reported (`AnalyticModel.identification.armature_shift`). M is symmetric by construction. Outside
-the checked states positive definiteness is not proven, so forward uses a general LU solve without error checks
-(not a Cholesky factorisation): a diverging rollout turns non-finite instead of raising midway.
-
-Integration (`AnalyticModel.forward`): qdd = M(q)^-1 (tau - h(q, qd) - friction(qd)) by a linear solve, then
-semi-implicit Euler at dt, qd' = qd + qdd dt, q' = q + qd' dt, which is MuJoCo's own update for hinge joints (the
-PINN's Eq. 6 is explicit Euler plus a learned correction). Stateless: `initial_state` returns (). Forward runs in the
-module's dtype (float32 by default); identification runs in float64. Nothing is trained by gradient descent: the
-model has no nn.Parameter, and `fit_normalisation` has nothing to fit.
+Each leg is a fixed-base serial chain read from the MJCF (`read_chain`); pi holds the 10 inertial parameters of
+each leg body, then the armature, viscous and Coulomb coefficients of each joint; Y comes from a recursive
+Newton–Euler pass (`regressor`). Contact and the floating base are not represented: that is the point of this
+baseline. `identify` fits pi; `AnalyticModel.forward` integrates semi-implicit Euler, MuJoCo's update for hinges.
+Stateless, and nothing is trained by gradient descent. The model and its identification: docs/dynamics.md.
 """
 
 from __future__ import annotations
@@ -62,6 +25,7 @@ import torch
 from torch import nn
 
 from bruce_hw.config import find_mjcf
+from training.episodes import transition_indices
 
 if TYPE_CHECKING:
     from bruce_hw.config import RobotConfig
@@ -528,16 +492,6 @@ def _as_joint_array(name: str, value, n: int, length: int | None = None) -> np.n
     return array
 
 
-def valid_transitions(n_samples: int, episode: np.ndarray | None) -> np.ndarray:
-    """Indices t whose transition t -> t+1 stays within one episode."""
-    if episode is None:
-        return np.arange(n_samples - 1)
-    episode = np.asarray(episode)
-    if episode.shape != (n_samples,):
-        raise ValueError(f"identify: episode has shape {list(episode.shape)}, expected [{n_samples}]")
-    return np.flatnonzero(episode[1:] == episode[:-1])
-
-
 def _solve_scaled(r_aug: np.ndarray, rcond: float, ridge: float) -> tuple[np.ndarray, int, float, float]:
     """Least squares from the R factor of [Y | tau]: unit-norm columns, truncated SVD, ridge.
 
@@ -580,7 +534,7 @@ def _leg_factors(chain: Chain, config: AnalyticConfig, q: np.ndarray, qd: np.nda
     factors: dict[int, torch.Tensor] = {}
     for start in range(0, len(index), chunk):
         t = index[start:start + chunk]
-        qdd = (qd[t + 1] - qd[t]) / config.dt  # forward difference: the acceleration the step applied (docstring)
+        qdd = (qd[t + 1] - qd[t]) / config.dt  # forward difference: the acceleration the step applied (docs)
         y = regressor(kin, tree, torch.as_tensor(q[t]), torch.as_tensor(qd[t]), torch.as_tensor(qdd),
                       config.coulomb_velocity)
         for root, joints in legs.items():  # with a fixed base each leg is its own least-squares problem
@@ -609,7 +563,10 @@ def identify(q, qd, tau, dt: float, episode=None, *, config: AnalyticConfig | No
     q = _as_joint_array("q", q, n)
     qd = _as_joint_array("qd", qd, n, len(q))
     tau = _as_joint_array("tau", tau, n, len(q))
-    index = valid_transitions(len(q), episode)
+    episode = np.zeros(len(q), np.int64) if episode is None else np.asarray(episode)
+    if episode.shape != (len(q),):
+        raise ValueError(f"identify: episode has shape {list(episode.shape)}, expected [{len(q)}]")
+    index = transition_indices(episode)
     if len(index) == 0:
         raise ValueError("identify: no transition t -> t+1 within one episode")
 

@@ -1,5 +1,5 @@
-"""`bruce-eval`: evaluate learned dynamics models (`dynamics`, training/evaluate.py) and rehearse their sim-to-real
-transfer (`transfer`, training/transfer_eval.py).
+"""`bruce-eval`: evaluate learned dynamics models (`dynamics`, `dynamics_eval.py`) and rehearse their sim-to-real
+transfer (`transfer`, `transfer_eval.py`).
 
 The parser lives here, apart from both, so that `bruce-eval transfer` (onnxruntime and MuJoCo only) runs on the base
 install: torch is imported only by the `dynamics` command.
@@ -11,7 +11,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from training import transfer_eval
+from training.evaluation import transfer_eval
 
 DYNAMICS_HELP = "Held-out NMSE (one-step and open-loop K-step) and per-step compute of dynamics models."
 
@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "transfer":
         return transfer_eval.run_transfer(args, argv)
-    from training.evaluate import main_dynamics  # torch
+    from training.evaluation.dynamics_eval import main_dynamics  # torch
 
     return main_dynamics(args, argv)
 

@@ -1,19 +1,10 @@
 """Issue 20's acceptance of a transfer scheme, checked on `bruce-eval transfer`'s per-profile reports.
 
-Every bar the evaluation has data for, per mode (`acceptance(...)[mode][bar]` = value, limit, pass):
-
-- `tracking`, `circle`, `no_new_falls`, on the bar profile (`default` when it ran, else the first profile), over at
-  least `MIN_SEEDS` gap seeds: tracking joint RMSE <= `TRACKING_BAR` x direct's; the circle's mean distance from the
-  simulator's own base path <= `CIRCLE_BAR` x direct's (the ideal circle is ~0.1 m from the simulator itself, so it
-  cannot measure transfer: the report prints it, the bar does not use it); no seed that falls where direct does not;
-- `none`: on the `none` profile (the robot is the simulator) the joint RMSE of every experiment <= `NULL_RMSE`;
-- `one_factor:<profile>`: on each one-factor profile that ran, no experiment's joint RMSE above direct's (the
-  worst ratio is shown) and no more falls;
-- `latency`: the actuator latency the scheme tolerates in the sweep (the largest swept latency up to which no seed
-  fell, at every smaller one neither) is at least direct's.
-
+`acceptance(...)[mode][bar]` = value, limit, pass, for every bar the evaluation has data for: tracking, circle and
+no new falls on the bar profile, `none`, each one-factor profile that ran, and the latency tolerated in the sweep.
 `recommended` names the mode that passes every bar it has, tracking and circle included, with the best tracking;
-never direct, Eq. 9 (the paper's row) or a perfect-model control (SCHEME@nominal).
+never direct, Eq. 9 (the paper's row) or a perfect-model control (SCHEME@nominal). The bars: docs/transfer.md
+("How the rehearsal runs").
 """
 
 from __future__ import annotations
@@ -108,7 +99,7 @@ def _no_worse_bar(report: dict, mode: str) -> dict | None:
 
 
 def acceptance(profiles: dict[str, dict], modes) -> dict:
-    """Per mode other than direct, every bar the reports have data for (see the module docstring). `profiles`
+    """Per mode other than direct, every bar the reports have data for (docs/transfer.md). `profiles`
     maps a profile name to its report (experiments -> mode -> metrics over seeds; "sweeps" where the sweeps ran)."""
     bar_profile = BAR_PROFILE if BAR_PROFILE in profiles else next(iter(profiles), None)
     sweep_rows = next((p["sweeps"]["latency"] for p in profiles.values() if p.get("sweeps", {}).get("latency")), [])

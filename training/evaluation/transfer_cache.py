@@ -64,7 +64,7 @@ class RunCache:
         return json.loads(path.read_text())["metrics"] if path.is_file() else None
 
     def save_metrics(self, key: str, spec, metrics: dict) -> None:
-        from training.eval_report import json_safe
+        from training.evaluation.report import json_safe
 
         text = json.dumps(json_safe({"spec": dataclasses.asdict(spec), "metrics": metrics}), indent=1)
         self._atomic(self._path(key, ".json"), lambda tmp: tmp.write_text(text + "\n"))
