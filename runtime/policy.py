@@ -43,38 +43,49 @@ class ObservationBuilder:
     on where north is), but the yaw's error to the heading the command asks for (`runtime.heading`), the state the
     walking teacher steers with: a student that sees it can learn the teacher's heading correction. The clock is the
     teacher's `GaitClock`. The builder keeps the reference and the clock, so it is built once per policy tick, in
-    order, and reset at the start of a run."""
+    order, and reset at the start of a run. With `num_envs` it builds a batch of simulated robots' observations at
+    once (`observe` on arrays with a leading robot axis; training/rl), with the same arithmetic."""
 
-    def __init__(self, config: RobotConfig):
+    def __init__(self, config: RobotConfig, num_envs: int | None = None):
         self.slices: dict[str, slice] = {}
         start = 0
         for name, width in observation_layout(config.n_joints):
             self.slices[name] = slice(start, start + width)
             start += width
         self.size = start
-        self.heading_reference = HeadingReference(1.0 / config.policy_hz)
-        self.clock = GaitClock(config.models.gait_period_s, 1.0 / config.policy_hz)
+        self.heading_reference = HeadingReference(1.0 / config.policy_hz, num_envs=num_envs)
+        self.clock = GaitClock(config.models.gait_period_s, 1.0 / config.policy_hz, num_envs)
 
-    def reset(self) -> None:
-        self.heading_reference.reset()
-        self.clock.reset()
+    def reset(self, envs=...) -> None:
+        """Start a run (of the robots `envs` selects: a mask or indices into the batch)."""
+        self.heading_reference.reset(envs)
+        self.clock.reset(envs)
 
     def build(self, command: np.ndarray, state: RobotState, base: BaseEstimate,
               last_action: np.ndarray) -> np.ndarray:
+        return self.observe(command, state.joints.q, state.joints.qd, base.linvel, base.angvel, base.euler,
+                            last_action)
+
+    def observe(self, command: np.ndarray, q: np.ndarray, qd: np.ndarray, base_linvel: np.ndarray,
+                base_angvel: np.ndarray, euler: np.ndarray, last_action: np.ndarray) -> np.ndarray:
+        """The observation (size,) of one robot, or (num_envs, size) of a batch (every argument with a leading
+        robot axis); `euler` is (roll, pitch, yaw), the builder turns the yaw into the heading error."""
         phase = 2.0 * math.pi * self.clock.tick(command)
         command = self.clock.command  # the rate-limited command, the one the gait follows
         s = self.slices
-        obs = np.empty(self.size)
-        obs[s["clock"]] = (math.sin(phase), math.cos(phase))
-        obs[s["command"]] = command
-        obs[s["q"]] = state.joints.q
-        obs[s["qd"]] = state.joints.qd
-        obs[s["base_linvel"]] = base.linvel
-        obs[s["base_angvel"]] = base.angvel
-        roll, pitch, yaw = base.euler
-        self.heading_reference.update(float(yaw), float(command[2]))
-        obs[s["euler"]] = (roll, pitch, self.heading_reference.error(float(yaw)))
-        obs[s["last_action"]] = last_action
+        obs = np.empty((*np.shape(phase), self.size))
+        obs[..., s["clock"].start] = np.sin(phase)
+        obs[..., s["clock"].start + 1] = np.cos(phase)
+        obs[..., s["command"]] = command
+        obs[..., s["q"]] = q
+        obs[..., s["qd"]] = qd
+        obs[..., s["base_linvel"]] = base_linvel
+        obs[..., s["base_angvel"]] = base_angvel
+        yaw = euler[..., 2]
+        self.heading_reference.update(yaw, command[..., 2])
+        obs[..., s["euler"].start:s["euler"].start + 2] = euler[..., :2]
+        obs[..., s["euler"].start + 2] = self.heading_reference.error(yaw)
+        obs[..., s["last_action"]] = last_action
         return obs
 
 

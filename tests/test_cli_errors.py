@@ -12,6 +12,7 @@ from training.collect import main as bruce_collect
 from training.dynamics.export import main as bruce_export
 from training.dynamics.train import main as bruce_train
 from training.evaluation.cli import main as bruce_eval
+from training.rl.train_cli import main as bruce_train_policy
 
 CASES = [
     # (command, argv, what the last line must say)
@@ -40,6 +41,14 @@ CASES = [
     (bruce_eval, ["transfer"], "the following arguments are required: --out"),
     (bruce_eval, ["dynamics", "--data", "nope.npz", "--model", "pinn=x.pt", "--out", "out"],
      "nope.npz: dataset file not found"),
+    (bruce_train_policy, ["--out", "run", "--config", "nope.yaml"], "nope.yaml: training config file not found"),
+    (bruce_train_policy, ["--out", "run", "--set", "train.action_scale=5"], "train.action_scale: expected"),
+    (bruce_train_policy, ["--out", "run", "--set", "env.randomisation.latency_ticks=[0, 20]"],
+     "env.randomisation.latency_ticks[1]: expected"),
+    (bruce_train_policy, ["--out", "run", "--warm-start", "nope.onnx"],
+     "nope.onnx: --warm-start policy file not found"),
+    (bruce_train_policy, ["--out", "run", "--resume"], "--resume: no checkpoint to continue from"),
+    (bruce_train_policy, [], "the following arguments are required: --out"),
 ]
 
 

@@ -9,6 +9,7 @@ from runtime.commands import CommandSchedule
 from runtime.estimation import GroundTruthEstimator
 from runtime.kinematic_estimator import KinematicEstimator
 from runtime.run import run_session
+from training.evaluation.walking_eval import GRID, TRACKING_LIMIT
 
 
 def walk(config, cmd, seconds, estimator=None, controller_kind="teacher", backend=None, controller=None):
@@ -17,16 +18,13 @@ def walk(config, cmd, seconds, estimator=None, controller_kind="teacher", backen
                        commands=CommandSchedule.constant(*cmd), estimator=estimator)
 
 
-# The acceptance grid of the walking issue: 20 s per command, Eq. 8 only, ground-truth base state.
-GRID = [(vx, 0.0, wz) for vx in (-0.5, -0.3, 0.0, 0.4, 0.8) for wz in (-0.5, 0.0, 0.5)] + \
-    [(0.0, -0.2, 0.0), (0.0, 0.2, 0.0)]
 
 
 def assert_walks_and_tracks(summary, cmd):
     truth = summary.truth
     assert not truth.fell and summary.stop_cause == "duration reached", (cmd, summary.stop_cause)
     error = truth.tracking_error
-    assert max(error["vx"], error["vy"]) <= 0.1 and error["wz"] <= 0.1, (cmd, error)
+    assert max(error["vx"], error["vy"]) <= TRACKING_LIMIT and error["wz"] <= TRACKING_LIMIT, (cmd, error)
 
 
 @pytest.mark.parametrize("cmd", GRID)

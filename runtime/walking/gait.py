@@ -23,6 +23,8 @@ COMMAND_ACCELERATION = np.array([0.5, 0.5, 1.0])  # m/s^2, m/s^2, rad/s^2: (vx, 
 
 @dataclass(frozen=True, slots=True)
 class GaitPhase:
+    """One robot's gait phase (numbers), or a batch's (arrays, one entry per robot)."""
+
     starting: bool       # in the start-up period (both feet down, shifting weight)
     step: int            # index of the current step (0 = first step); -1 while starting
     stance: int          # leg in stance: 0 right, 1 left
@@ -32,15 +34,22 @@ class GaitPhase:
     start_share: float   # share of the start-up period done (1 once stepping)
 
 
-def gait_phase(cycles: float, period: float) -> GaitPhase:
-    """The gait at `cycles` gait periods since the start, stepping at period C_T = `period` (s)."""
+def gait_phase(cycles, period) -> GaitPhase:
+    """The gait at `cycles` gait periods since the start, stepping at period C_T = `period` (s). Numbers give a phase
+    of numbers; arrays (a batch of robots) give one of arrays."""
     step_time = 0.5 * period
-    if cycles < 1.0:
-        return GaitPhase(True, -1, 0, (cycles - 0.5) * period, (1.0 - cycles) * period, step_time, cycles)
-    steps = 2.0 * (cycles - 1.0)
-    k = int(steps)
+    starting = cycles < 1.0
+    steps = np.maximum(2.0 * (cycles - 1.0), 0.0)
+    k = np.floor(steps)
     share = steps - k
-    return GaitPhase(False, k, k % 2, share * step_time, (1.0 - share) * step_time, step_time, 1.0)
+    k = k.astype(int)
+    fields = (starting, np.where(starting, -1, k), np.where(starting, 0, k % 2),
+              np.where(starting, (cycles - 0.5) * period, share * step_time),
+              np.where(starting, (1.0 - cycles) * period, (1.0 - share) * step_time),
+              step_time, np.where(starting, cycles, 1.0))
+    if np.ndim(cycles) == 0:  # one robot's phase: plain numbers
+        return GaitPhase(*(np.asarray(f).item() for f in fields))
+    return GaitPhase(*fields)
 
 
 def interpolate(table: tuple[tuple[float, float], ...], x: float) -> float:
@@ -55,44 +64,56 @@ def gait_period(cadence: tuple[tuple[float, float], ...], vx: float) -> float:
 
 
 class GaitClock:
-    """The gait phase in periods and the command the gait follows, advanced once per policy tick."""
+    """The gait phase in periods and the command the gait follows, advanced once per policy tick; of one robot
+    (numbers, a (3,) command) or of a batch of `num_envs` simulated ones (arrays, (num_envs, 3) commands)."""
 
-    def __init__(self, cadence: tuple[tuple[float, float], ...], dt: float):
+    def __init__(self, cadence: tuple[tuple[float, float], ...], dt: float, num_envs: int | None = None):
         self.cadence = cadence
         self.dt = dt
+        self._points = tuple(np.array(axis, dtype=float) for axis in zip(*cadence, strict=True))
+        shape = () if num_envs is None else (num_envs,)
+        self.cycles = np.zeros(shape)
+        self.command = np.zeros((*shape, 3))  # (vx, vy, yaw rate), rate-limited
         self.reset()
 
-    def reset(self) -> None:
-        self.cycles = 0.0
-        self.command = np.zeros(3)  # (vx, vy, yaw rate), rate-limited
-        self.period = gait_period(self.cadence, 0.0)
+    def reset(self, envs=...) -> None:
+        """Start over (the robots `envs` selects: a mask or indices into the batch)."""
+        self.cycles = np.array(self.cycles)  # one robot's is a number after a tick
+        self.cycles[envs] = 0.0
+        self.command[envs] = 0.0
+        self.period = np.interp(self.command[..., 0], *self._points)
 
-    def tick(self, command: np.ndarray) -> float:
+    def tick(self, command):
         """This tick's phase (periods since the start), then advance one policy tick: the followed command moves
         toward `command` (vx, vy, yaw rate) at the bounded acceleration, and the cadence with it."""
         cycles = self.cycles
         limit = COMMAND_ACCELERATION * self.dt
         self.command = self.command + np.clip(np.asarray(command, dtype=float) - self.command, -limit, limit)
-        self.period = gait_period(self.cadence, float(self.command[0]))
-        self.cycles += self.dt / self.period
-        return cycles
+        self.period = np.interp(self.command[..., 0], *self._points)
+        self.cycles = cycles + self.dt / self.period
+        return cycles[()]
 
-    def phase(self, cycles: float) -> GaitPhase:
+    def phase(self, cycles) -> GaitPhase:
         return gait_phase(cycles, self.period)
 
 
-def min_jerk(s: float) -> float:
+def _unit(s):
+    """s clamped to [0, 1] (a number or an array)."""
+    return min(1.0, max(0.0, s)) if np.ndim(s) == 0 else np.clip(s, 0.0, 1.0)
+
+
+def min_jerk(s):
     """Minimum-jerk blend 0 -> 1 for s in [0, 1] (clamped): zero slope and curvature at both ends. The teacher
     takes its rates and accelerations by differencing the joint targets, so no derivative is given."""
-    s = min(1.0, max(0.0, s))
+    s = _unit(s)
     return s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
 
 
-def swing_height(s: float, apex: float, landing: float) -> float:
+def swing_height(s, apex: float, landing: float):
     """Height of the swing ankle above its stance-ankle level: a bump of height `apex` with zero slope at
     lift-off and touch-down, ending at `landing` (slightly below the ground, so the foot lands rather than
     hovers)."""
-    s = min(1.0, max(0.0, s))
+    s = _unit(s)
     return apex * 16.0 * s * s * (1.0 - s) * (1.0 - s) + landing * min_jerk(s)
 
 

@@ -1,5 +1,6 @@
-"""`bruce-eval`: evaluate learned dynamics models (`dynamics`, `dynamics_eval.py`) and rehearse their sim-to-real
-transfer (`transfer`, `transfer_eval.py`).
+"""`bruce-eval`: evaluate learned dynamics models (`dynamics`, `dynamics_eval.py`), rehearse their sim-to-real
+transfer (`transfer`, `transfer_eval.py`) and run a walking controller on the command grid (`walking`,
+`walking_eval.py`).
 
 The parser lives here, apart from both, so that `bruce-eval transfer` (onnxruntime and MuJoCo only) runs on the base
 install: torch is imported only by the `dynamics` command.
@@ -11,14 +12,15 @@ import argparse
 import sys
 from pathlib import Path
 
-from training.evaluation import transfer_eval
+from training.evaluation import transfer_eval, walking_eval
 
 DYNAMICS_HELP = "Held-out NMSE (one-step and open-loop K-step) and per-step compute of dynamics models."
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="bruce-eval", description="Evaluate learned dynamics models "
-                                     "(dynamics) and rehearse their sim-to-real transfer (transfer).")
+                                     "(dynamics), rehearse their sim-to-real transfer (transfer), walk the "
+                                     "command grid (walking).")
     commands = parser.add_subparsers(dest="command", required=True)
     p = commands.add_parser("dynamics", help="held-out NMSE and per-step compute of dynamics models",
                             description=DYNAMICS_HELP)
@@ -42,6 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--train-fraction", type=float, default=0.8, help="the split (default: %(default)s)")
     p.add_argument("--config", default=None, help="robot config the data must match (default: BRUCE's)")
     transfer_eval.add_parser(commands)
+    walking_eval.add_parser(commands)
     return parser
 
 
@@ -50,6 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "transfer":
         return transfer_eval.run_transfer(args, argv)
+    if args.command == "walking":
+        return walking_eval.run_walking(args)
     from training.evaluation.dynamics_eval import main_dynamics  # torch
 
     return main_dynamics(args, argv)

@@ -1,0 +1,115 @@
+"""The PPO training loop on rsl-rl-lib's PPO, actor-critic models and rollout storage.
+
+rsl-rl's `OnPolicyRunner` is this loop plus its own logging and checkpoints; we run the loop ourselves because an
+identical `--resume` needs the environment's state and the random generators in the checkpoint (the runner saves
+only the networks and the optimizer), and because `bruce-train-policy` shows a progress bar and logs the reward
+terms instead of the runner's per-iteration text blocks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import io
+import statistics
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from rsl_rl.algorithms import PPO
+
+from training.rl.vec_env import RslVecEnv
+
+
+@dataclass
+class IterationStats:
+    iteration: int
+    steps: int                    # env steps taken in this iteration (all envs)
+    seconds: float
+    mean_reward: float            # mean return of the episodes finished in the last 100 (nan before the first)
+    mean_length_s: float          # their mean length (s)
+    losses: dict[str, float]
+    learning_rate: float
+    action_std: float
+    terms: dict[str, float] = field(default_factory=dict)  # per-step mean of each weighted reward term
+
+
+class PolicyTrainer:
+    """PPO on `env` with rsl-rl's `PPO.construct_algorithm(obs, env, cfg)`; `cfg` is rsl-rl's train config."""
+
+    def __init__(self, env: RslVecEnv, cfg: dict, seed: int):
+        torch.manual_seed(seed)
+        self.env = env
+        self.cfg = copy.deepcopy(cfg)
+        self.cfg.setdefault("multi_gpu", None)
+        with contextlib.redirect_stdout(io.StringIO()):  # rsl-rl prints both networks
+            self.alg: PPO = PPO.construct_algorithm(env.get_observations(), env, self.cfg, "cpu")
+        self.iteration = 0
+        self._returns: deque[float] = deque(maxlen=100)
+        self._lengths: deque[float] = deque(maxlen=100)
+        self._episode_return = torch.zeros(env.num_envs)
+        self._episode_steps = torch.zeros(env.num_envs)
+
+    @property
+    def actor(self) -> torch.nn.Module:
+        return self.alg.get_policy()
+
+    def step_iteration(self) -> IterationStats:
+        """One PPO iteration: `num_steps_per_env` steps of every env, then the update."""
+        start = time.perf_counter()
+        self.alg.train_mode()
+        obs = self.env.get_observations()
+        terms: dict[str, float] = {}
+        steps = int(self.cfg["num_steps_per_env"])
+        with torch.inference_mode():
+            for _ in range(steps):
+                actions = self.alg.act(obs)
+                obs, rewards, dones, extras = self.env.step(actions)
+                self.alg.process_env_step(obs, rewards, dones, extras)
+                for name, value in extras["log"].items():
+                    terms[name] = terms.get(name, 0.0) + float(value) / steps
+                self._book_episodes(rewards, dones)
+            self.alg.compute_returns(obs)
+        losses = self.alg.update()
+        self.iteration += 1
+        return IterationStats(
+            iteration=self.iteration, steps=steps * self.env.num_envs, seconds=time.perf_counter() - start,
+            mean_reward=statistics.fmean(self._returns) if self._returns else float("nan"),
+            mean_length_s=statistics.fmean(self._lengths) * self.env.dt if self._lengths else float("nan"),
+            losses={k: float(v) for k, v in losses.items()}, learning_rate=float(self.alg.learning_rate),
+            action_std=float(self.actor.output_std.detach().mean()), terms=terms)
+
+    def _book_episodes(self, rewards: torch.Tensor, dones: torch.Tensor) -> None:
+        self._episode_return += rewards
+        self._episode_steps += 1
+        done = dones.bool()
+        if done.any():
+            self._returns.extend(self._episode_return[done].tolist())
+            self._lengths.extend(self._episode_steps[done].tolist())
+            self._episode_return[done] = 0.0
+            self._episode_steps[done] = 0.0
+
+    # -- checkpoints: everything an identical continuation needs -----------------------------------------------
+    def state_dict(self) -> dict:
+        return {"alg": self.alg.save(), "iteration": self.iteration, "env": self.env.state_dict(),
+                "torch_rng": torch.get_rng_state(), "returns": list(self._returns), "lengths": list(self._lengths),
+                "episode_return": self._episode_return.clone(), "episode_steps": self._episode_steps.clone()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.alg.load(state["alg"], None, strict=True)
+        self.iteration = int(state["iteration"])
+        self.env.load_state_dict(state["env"])
+        torch.set_rng_state(state["torch_rng"])
+        self._returns = deque(state["returns"], maxlen=100)
+        self._lengths = deque(state["lengths"], maxlen=100)
+        self._episode_return = state["episode_return"].clone()
+        self._episode_steps = state["episode_steps"].clone()
+
+
+def parameters_vector(trainer: PolicyTrainer) -> np.ndarray:
+    """Every actor and critic parameter and buffer, flattened: what two runs compare to be the same run."""
+    parts = [t.detach().flatten().double() for m in (trainer.alg.get_policy(), trainer.alg.critic)
+             for t in [*m.parameters(), *m.buffers()]]
+    return torch.cat(parts).numpy()

@@ -1,0 +1,213 @@
+"""`bruce-train-policy`: PPO for BRUCE's walking policy in MuJoCo (paper §IV-A), exported for `bruce-run --policy`.
+
+    bruce-train-policy --out runs/rl [--config training/rl/bruce_walk.yaml] [--set KEY=VALUE ...]
+                       [--warm-start configs/robots/policies/bruce_walk.onnx | none] [--resume] [--stop-after N]
+
+DIR gets `checkpoint.pt` (every `train.checkpoint_every` iterations and at the end: networks, optimizer, the
+environments' state and the random generators, so `--resume` continues exactly), TensorBoard files in `tb/`
+(losses, learning rate, episode reward and length, each reward term) and `policy.onnx` with its sidecar.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import logging
+import os
+import shlex
+import sys
+import time
+from importlib import metadata
+from pathlib import Path
+
+import torch
+import yaml
+
+from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
+from training.rl.train_config import DEFAULT_TRAINING_CONFIG, TrainingConfig, TrainingConfigError, load_training_config
+
+CHECKPOINT = "checkpoint.pt"
+log = logging.getLogger("bruce-train-policy")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="bruce-train-policy", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, required=True, help="run directory (checkpoint, TensorBoard, policy.onnx)")
+    p.add_argument("--config", type=Path, default=DEFAULT_TRAINING_CONFIG, help="training config (YAML)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a training config key, e.g. train.iterations=200 (repeatable)")
+    p.add_argument("--robot-config", default=DEFAULT_CONFIG, help="robot config (default %(default)s)")
+    p.add_argument("--warm-start", default=None, metavar="ONNX|none",
+                   help="clone this ONNX policy before PPO (overrides train.warm_start.policy); none: from scratch")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    p.add_argument("--stop-after", type=int, default=None, metavar="N",
+                   help="stop (with a checkpoint) after N PPO iterations of this call; --resume continues")
+    p.add_argument("--export", type=Path, default=None, help="ONNX file to write at the end (default OUT/policy.onnx)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (one log line per checkpoint)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+    try:
+        robot, config, resumed = _prepare(args)
+    except (ConfigError, TrainingConfigError, FileNotFoundError) as exc:
+        print(f"bruce-train-policy: {exc}", file=sys.stderr)
+        return 2
+    try:
+        return train(args, config, robot, resumed)
+    except KeyboardInterrupt:
+        print(f"bruce-train-policy: interrupted; the last checkpoint is in {args.out} (continue with --resume)",
+              file=sys.stderr)
+        return 130
+
+
+def _prepare(args: argparse.Namespace) -> tuple:
+    robot = load_config(args.robot_config)
+    config = load_training_config(args.config, args.set)
+    if args.warm_start is not None:
+        policy = None if args.warm_start == "none" else Path(args.warm_start)
+        if policy is not None and not policy.is_file():
+            raise FileNotFoundError(f"{policy}: --warm-start policy file not found")
+        config = config.with_overrides(warm_start=type(config.warm_start)(**{**config.warm_start.__dict__,
+                                                                             "policy": policy}))
+    if config.warm_start.policy is not None and not config.warm_start.policy.is_file():
+        raise FileNotFoundError(f"{config.path}: train.warm_start.policy: {config.warm_start.policy} not found")
+    if args.stop_after is not None and args.stop_after < 1:
+        raise TrainingConfigError(f"--stop-after: expected an integer >= 1, got {args.stop_after}")
+    checkpoint = args.out / CHECKPOINT
+    if args.resume and not checkpoint.is_file():
+        raise FileNotFoundError(f"{checkpoint}: --resume: no checkpoint to continue from")
+    if not args.resume and checkpoint.exists():
+        raise TrainingConfigError(f"{args.out}: holds a run already (continue it with --resume, or choose "
+                                  "another --out)")
+    resumed = torch.load(checkpoint, weights_only=False) if args.resume else None
+    if resumed is not None and resumed["run"] != _run_identity(config, robot.path, args):
+        raise TrainingConfigError(f"{checkpoint}: --resume: the run was started with other settings "
+                                  f"(config, robot config or warm start); start a new --out")
+    return robot, config, resumed
+
+
+def _run_identity(config: TrainingConfig, robot_path: Path, args: argparse.Namespace) -> dict:
+    """What a resumed run must share with its start."""
+    return {"config": config.raw, "robot_config_sha256": _sha256(robot_path),
+            "warm_start": str(config.warm_start.policy) if config.warm_start.policy else None}
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict | None) -> int:
+    from torch.utils.tensorboard import SummaryWriter
+    from tqdm import tqdm
+
+    from training.rl.env import BruceWalkEnv
+    from training.rl.export import export_policy
+    from training.rl.ppo_loop import PolicyTrainer
+    from training.rl.vec_env import RslVecEnv
+    from training.rl.warm_start import clone_policy, fit_critic
+
+    torch.set_num_threads(1)  # the physics threads take the cores; the small networks gain nothing from more
+    args.out.mkdir(parents=True, exist_ok=True)
+    env = BruceWalkEnv(robot, config.env, seed=config.seed, reward_weights=config.reward_weights)
+    vec = RslVecEnv(env, config.action_scale, config.reward_scale)
+    trainer = PolicyTrainer(vec, config.ppo, seed=config.seed)
+    writer = SummaryWriter(log_dir=str(args.out / "tb"))
+    identity = _run_identity(config, robot.path, args)
+    history = resumed["history"] if resumed else {"wall_s": 0.0, "warm_start": None, "env_steps": 0}
+    started = time.perf_counter()
+
+    def save() -> None:
+        history["wall_s"] += time.perf_counter() - started_chunk[0]
+        started_chunk[0] = time.perf_counter()
+        state = {"run": identity, "trainer": trainer.state_dict(), "history": history}
+        tmp = args.out / (CHECKPOINT + ".tmp")
+        torch.save(state, tmp)
+        os.replace(tmp, args.out / CHECKPOINT)
+
+    started_chunk = [started]
+    try:
+        warm_iterations = config.warm_start.critic_iterations if config.warm_start.policy else 0
+        if resumed:
+            trainer.load_state_dict(resumed["trainer"])
+            log.info("resumed %s at iteration %d", args.out / CHECKPOINT, trainer.iteration)
+        elif config.warm_start.policy:
+            cloned = clone_policy(trainer, vec, config.warm_start.policy, config.warm_start.samples,
+                                  config.warm_start.epochs, config.seed, progress=log.info)
+            fit_critic(trainer, warm_iterations, report=lambda s: _log(writer, s))
+            history["warm_start"] = {"policy": str(config.warm_start.policy),
+                                     "policy_sha256": _sha256(config.warm_start.policy), **cloned,
+                                     "critic_iterations": warm_iterations}
+            save()
+        total = warm_iterations + config.iterations
+        stop_at = total if args.stop_after is None else min(total, trainer.iteration + args.stop_after)
+        bar = tqdm(total=total, initial=trainer.iteration, desc="bruce-train-policy", unit="it",
+                   disable=args.no_progress, dynamic_ncols=True)
+        while trainer.iteration < stop_at:
+            stats = trainer.step_iteration()
+            history["env_steps"] += stats.steps
+            _log(writer, stats)
+            bar.update(1)
+            bar.set_postfix(reward=f"{stats.mean_reward:.2f}", length_s=f"{stats.mean_length_s:.1f}",
+                            steps_s=f"{stats.steps / stats.seconds:.0f}")
+            if trainer.iteration % config.checkpoint_every == 0 or trainer.iteration == stop_at:
+                save()
+                if args.no_progress:
+                    log.info("iteration %d/%d: mean episode reward %.2f, length %.1f s, %.0f steps/s",
+                             trainer.iteration, total, stats.mean_reward, stats.mean_length_s,
+                             stats.steps / stats.seconds)
+        bar.close()
+        if trainer.iteration < total:
+            print(f"bruce-train-policy: stopped at iteration {trainer.iteration}/{total}; "
+                  f"continue with --resume. Checkpoint: {args.out / CHECKPOINT}")
+            return 0
+        out = args.export or args.out / "policy.onnx"
+        command = "bruce-train-policy " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        export_policy(trainer.actor, out, env.get_observations()["policy"].shape[1], robot.standing_pose,
+                      config.action_scale, {
+                          "command": command, "seed": config.seed, "config": str(config.path),
+                          "config_sha256": _sha256(config.path), "overrides": list(args.set),
+                          "robot_config": str(robot.path), "robot_config_sha256": _sha256(robot.path),
+                          "resolved_config": yaml.safe_dump(config.raw, sort_keys=False),
+                          "warm_start": history["warm_start"], "iterations": trainer.iteration,
+                          "env_steps": history["env_steps"], "train_wall_s": round(history["wall_s"], 1),
+                          "versions": {name: _version(name) for name in ("rsl-rl-lib", "mujoco", "torch", "numpy")},
+                          "final": {"mean_episode_reward": stats_or_nan(trainer), "machine": os.uname().machine}})
+        print(f"bruce-train-policy: wrote {out} and {out}.json; checkpoint {args.out / CHECKPOINT}; "
+              f"TensorBoard: {args.out / 'tb'}")
+        return 0
+    finally:
+        writer.close()
+        env.close()
+
+
+def stats_or_nan(trainer) -> float:
+    returns = list(trainer._returns)
+    return float(sum(returns) / len(returns)) if returns else float("nan")
+
+
+def _version(name: str) -> str:
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return "not installed"
+
+
+def _log(writer, stats) -> None:
+    it = stats.iteration
+    writer.add_scalar("Train/mean_episode_reward", stats.mean_reward, it)
+    writer.add_scalar("Train/mean_episode_length_s", stats.mean_length_s, it)
+    writer.add_scalar("Perf/steps_per_s", stats.steps / stats.seconds, it)
+    writer.add_scalar("Loss/learning_rate", stats.learning_rate, it)
+    writer.add_scalar("Policy/mean_std", stats.action_std, it)
+    for name, value in stats.losses.items():
+        writer.add_scalar(f"Loss/{name}", value, it)
+    for name, value in stats.terms.items():
+        writer.add_scalar(name, value, it)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
