@@ -354,3 +354,31 @@ def test_a_restored_state_continues_exactly(config):
         np.testing.assert_array_equal(reward2, reward)
         np.testing.assert_array_equal(terminated2 | time_out2, terminated | time_out)
     assert any(t.any() for _, _, t, o, _ in tail) or any(o.any() for _, _, t, o, _ in tail)
+
+
+def test_the_added_tracking_inputs_follow_the_velocity_and_the_heading(config):
+    from training.rl.env import MEAN_VELOCITY_S
+    from training.rl.rewards import world_yaw_rate
+
+    env = make_env(config, 3, seed=4, nthread=1)
+    try:
+        truths, steps = [], []
+        for _ in range(30):
+            reference = env.builder.heading_reference.heading.copy()  # what the last observation was built with
+            _, _, fell, time_out, info = env.step(np.tile(config.standing_pose, (3, 1)))
+            assert not (fell.any() or time_out.any())
+            truths.append(env.truth())
+            steps.append(info["walk_step"])
+        # The low-pass of each step's heading-frame velocity and world yaw rate, from zero at the episode's start.
+        expected = np.zeros((3, 3))
+        for truth in truths:
+            v = np.concatenate([truth.heading_linvel[:, :2], world_yaw_rate(truth.euler, truth.angvel)[:, None]], 1)
+            expected += env.dt / MEAN_VELOCITY_S * (v - expected)
+        np.testing.assert_allclose(steps[-1].mean_velocity, expected, atol=1e-12)
+        from runtime.heading import wrap_angle
+        np.testing.assert_allclose(steps[-1].heading_error, wrap_angle(truths[-1].euler[:, 2] - reference),
+                                   atol=1e-12)
+        env._reset(np.array([1]))
+        assert np.all(env.mean_velocity[1] == 0.0) and np.any(env.mean_velocity[0] != 0.0)
+    finally:
+        env.close()

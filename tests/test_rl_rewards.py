@@ -256,3 +256,18 @@ def test_the_default_params_are_bruce_standing_geometry():
     assert PARAMS.hip_yaw_default == (pose["r_hip_yaw"], pose["l_hip_yaw"])
     assert PARAMS.hip_roll_default == (pose["r_hip_roll"], pose["l_hip_roll"])
     assert tuple(config.joints) == JOINTS
+
+
+def test_added_terms_score_the_mean_velocity_and_the_heading():
+    from training.rl.rewards import ADDED_TERMS, PAPER_WEIGHTS, heading_tracking, mean_velocity_tracking
+
+    command = np.array([[0.4, 0.0, 0.2]] * 3)
+    mean = command + np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.1]])
+    step = make_step(3, command=command, mean_velocity=mean, heading_error=np.array([0.0, 0.1, -0.3]))
+    params = RewardParams()
+    np.testing.assert_allclose(mean_velocity_tracking(step, params), [1.0, np.exp(-0.2), np.exp(-0.4)])
+    np.testing.assert_allclose(heading_tracking(step, params), [1.0, np.exp(-0.1), np.exp(-0.9)])
+    assert all(weight == 0.0 for _, weight in ADDED_TERMS.values())  # off unless a config weights them
+    total, terms = compute(step, {**PAPER_WEIGHTS, "heading_tracking": 2.0})
+    assert set(terms) == set(PAPER_WEIGHTS) | {"heading_tracking"}
+    np.testing.assert_allclose(terms["heading_tracking"], 2.0 * heading_tracking(step, params))

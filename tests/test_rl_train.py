@@ -113,3 +113,16 @@ def test_warm_start_clones_the_policy(tmp_path):
     assert after < 0.2 * before, (before, after)
     assert after < 0.05, after  # rad, RMS over joints
     assert result["held_out_rms_rad"] < 0.08
+
+
+def test_a_warm_started_run_clones_then_trains_with_the_warm_start_settings(tmp_path):
+    run = tmp_path / "warm"
+    policy = str(load_config().models.policy)
+    assert train_policy(["--out", str(run), *SHORT, "--warm-start", policy, "--set", "train.warm_start.samples=1000",
+                         "--set", "train.warm_start.epochs=2", "--set", "train.warm_start.critic_iterations=1"]) == 0
+    state = torch.load(run / CHECKPOINT, weights_only=False)
+    assert state["history"]["warm_start"]["policy_sha256"] and state["trainer"]["iteration"] == 5  # 1 + 4
+    std = state["trainer"]["alg"]["actor_state_dict"]["distribution.std_param"]
+    assert torch.allclose(std, torch.full_like(std, 0.2), atol=0.02)  # not the scratch run's 1.0
+    sidecar = (run / "policy.onnx.json").read_text()
+    assert "--warm-start" in sidecar and "policy_sha256" in sidecar

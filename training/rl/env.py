@@ -130,7 +130,8 @@ def _join(key: str, name: str) -> str:
 # and heading reference, and the random generator): what a checkpoint must hold.
 _CONTINUED = ("state", "_late", "_noise_std", "command", "_command_left", "_push_countdown", "_push_left",
               "push_wrench", "last_action", "last_action2", "_qd_prev", "_linvel_prev", "_angvel_prev", "tau",
-              "episode_length")
+              "episode_length", "mean_velocity")
+MEAN_VELOCITY_S = 0.5  # s, time constant of the averaged velocity the added tracking term scores: about a step cycle
 
 
 @dataclass
@@ -210,6 +211,7 @@ class BruceWalkEnv:
         self._linvel_prev = np.zeros((n, 3))
         self._angvel_prev = np.zeros((n, 3))
         self.tau = np.zeros((n, j))
+        self.mean_velocity = np.zeros((n, 3))  # vx, vy (heading frame), yaw rate, low-passed over MEAN_VELOCITY_S
         self.episode_length = np.zeros(n, dtype=int)
         self.obs: dict[str, np.ndarray] = {}
         self.reset()
@@ -239,6 +241,9 @@ class BruceWalkEnv:
         truth = self.truth()
         self.episode_length += 1
         time_out = (self.episode_length >= self.max_episode_length) & ~truth.fallen
+        velocity = np.concatenate([truth.heading_linvel[:, :2],
+                                   rewards.world_yaw_rate(truth.euler, truth.angvel)[:, None]], axis=1)
+        self.mean_velocity += min(1.0, self.dt / MEAN_VELOCITY_S) * (velocity - self.mean_velocity)
         walk_step = self._walk_step(a, truth)
         reward, terms = rewards.compute(walk_step, self.reward_weights, self.reward_params)
         self.last_action2, self.last_action = self.last_action, a
@@ -334,7 +339,9 @@ class BruceWalkEnv:
             stance_desired=np.where(phase.starting, DOUBLE_SUPPORT, phase.stance),
             swing_height_desired=np.where(phase.starting, 0.0, swing), q=truth.q, qd=truth.qd,
             qd_prev=self._qd_prev.copy(), tau=self.tau.copy(), action=a.copy(), action_prev=self.last_action.copy(),
-            action_prev2=self.last_action2.copy(), joint_names=self.robot.joints)
+            action_prev2=self.last_action2.copy(), joint_names=self.robot.joints,
+            heading_error=np.asarray(self.builder.heading_reference.error(truth.euler[:, 2]), dtype=float),
+            mean_velocity=self.mean_velocity.copy())
 
     def _observe(self, truth: BaseTruth) -> dict[str, np.ndarray]:
         j = self.num_actions
@@ -417,6 +424,7 @@ class BruceWalkEnv:
         self._linvel_prev[envs] = 0.0
         self._angvel_prev[envs] = 0.0
         self.tau[envs] = 0.0
+        self.mean_velocity[envs] = 0.0
         self.episode_length[envs] = 0
         self._sample_commands(envs)
         self._push_countdown[envs] = self._steps(cfg.push_interval_s, n)

@@ -1,6 +1,7 @@
 """The walking reward of the paper's Table II (docs/rl.md): `WalkStep` (one policy step of N envs), one function per
-term, `REWARD_TERMS` (name -> function, paper weight) and `compute(step, weights, params) -> (total, terms)`.
-Every term function returns its unweighted value per env, shape (N,).
+term, `REWARD_TERMS` (name -> function, paper weight), `ADDED_TERMS` (ours, beyond Table II, weight 0 unless a
+training config sets one) and `compute(step, weights, params) -> (total, terms)`. Every term function returns its
+unweighted value per env, shape (N,).
 """
 
 from __future__ import annotations
@@ -45,6 +46,8 @@ class WalkStep:
     action_prev: np.ndarray       # (N, 10) a_{t-1}
     action_prev2: np.ndarray      # (N, 10) a_{t-2}
     joint_names: tuple[str, ...]  # the config's joint names, to find the hip yaw and roll joints
+    heading_error: np.ndarray | None = None       # (N,) rad: yaw minus the command's heading reference
+    mean_velocity: np.ndarray | None = None       # (N, 3) vx, vy (heading frame), yaw rate, averaged over ~a step cycle
 
 
 @dataclass(frozen=True)
@@ -67,9 +70,14 @@ def phi(w: float, e: np.ndarray) -> np.ndarray:
 def yaw_rate(step: WalkStep) -> np.ndarray:
     """(N,) world-z rate of the base, what the yaw-rate command means (runtime.observers.heading_velocity): the base
     angular velocity dotted with the world's z axis in the base frame."""
-    roll, pitch = step.base_euler[:, 0], step.base_euler[:, 1]
+    return world_yaw_rate(step.base_euler, step.base_angvel)
+
+
+def world_yaw_rate(euler: np.ndarray, angvel: np.ndarray) -> np.ndarray:
+    """(N,) world-z rate from the base's (roll, pitch, yaw) and its base-frame angular velocity."""
+    roll, pitch = euler[:, 0], euler[:, 1]
     up = np.stack([-np.sin(pitch), np.cos(pitch) * np.sin(roll), np.cos(pitch) * np.cos(roll)], axis=1)
-    return np.sum(up * step.base_angvel, axis=1)
+    return np.sum(up * angvel, axis=1)
 
 
 def desired_contact(stance_desired: np.ndarray) -> np.ndarray:
@@ -189,14 +197,32 @@ REWARD_TERMS: dict[str, tuple[RewardTerm, float]] = {
 PAPER_WEIGHTS: dict[str, float] = {name: weight for name, (_, weight) in REWARD_TERMS.items()}
 
 
+# Ours, beyond Table II (docs/rl.md). The paper's tracking terms score the instantaneous velocity, which sways with
+# every step; what a command asks (and what the acceptance measures) is the mean over steps, and the heading the
+# yaw-rate command integrates to (the observation's third Euler entry).
+def mean_velocity_tracking(step: WalkStep, params: RewardParams) -> np.ndarray:
+    return phi(20.0, step.mean_velocity - step.command)
+
+
+def heading_tracking(step: WalkStep, params: RewardParams) -> np.ndarray:
+    return phi(10.0, step.heading_error[:, None])
+
+
+ADDED_TERMS: dict[str, tuple[RewardTerm, float]] = {
+    "mean_velocity_tracking": (mean_velocity_tracking, 0.0),
+    "heading_tracking": (heading_tracking, 0.0),
+}
+TERMS: dict[str, tuple[RewardTerm, float]] = {**REWARD_TERMS, **ADDED_TERMS}
+
+
 def compute(step: WalkStep, weights: Mapping[str, float] | None = None,
             params: RewardParams | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The reward of each env, (N,), and each term weighted, name -> (N,); they sum to the reward. `weights` names
     the terms to use (None: all, at the paper's weights); a term it leaves out is not computed."""
     weights = PAPER_WEIGHTS if weights is None else weights
-    unknown = sorted(set(weights) - set(REWARD_TERMS))
+    unknown = sorted(set(weights) - set(TERMS))
     if unknown:
-        raise ValueError(f"unknown reward terms {unknown}; the terms are {list(REWARD_TERMS)}")
+        raise ValueError(f"unknown reward terms {unknown}; the terms are {list(TERMS)}")
     params = params or RewardParams()
-    terms = {name: weight * REWARD_TERMS[name][0](step, params) for name, weight in weights.items()}
+    terms = {name: weight * TERMS[name][0](step, params) for name, weight in weights.items()}
     return sum(terms.values(), np.zeros(len(step.alive))), terms

@@ -50,6 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.command_line = "bruce-train-policy " + shlex.join(sys.argv[1:] if argv is None else argv)
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
     try:
         robot, config, resumed = _prepare(args)
@@ -114,7 +115,8 @@ def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict
     args.out.mkdir(parents=True, exist_ok=True)
     env = BruceWalkEnv(robot, config.env, seed=config.seed, reward_weights=config.reward_weights)
     vec = RslVecEnv(env, config.action_scale, config.reward_scale)
-    trainer = PolicyTrainer(vec, config.ppo, seed=config.seed)
+    ppo = config.warm_start.ppo(config.ppo) if config.warm_start.policy else config.ppo
+    trainer = PolicyTrainer(vec, ppo, seed=config.seed)
     writer = SummaryWriter(log_dir=str(args.out / "tb"))
     identity = _run_identity(config, robot.path, args)
     history = resumed["history"] if resumed else {"wall_s": 0.0, "warm_start": None, "env_steps": 0}
@@ -165,10 +167,9 @@ def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict
                   f"continue with --resume. Checkpoint: {args.out / CHECKPOINT}")
             return 0
         out = args.export or args.out / "policy.onnx"
-        command = "bruce-train-policy " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         export_policy(trainer.actor, out, env.get_observations()["policy"].shape[1], robot.standing_pose,
                       config.action_scale, {
-                          "command": command, "seed": config.seed, "config": str(config.path),
+                          "command": args.command_line, "seed": config.seed, "config": str(config.path),
                           "config_sha256": _sha256(config.path), "overrides": list(args.set),
                           "robot_config": str(robot.path), "robot_config_sha256": _sha256(robot.path),
                           "resolved_config": yaml.safe_dump(config.raw, sort_keys=False),

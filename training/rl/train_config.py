@@ -1,9 +1,10 @@
 """The settings of one policy training (`bruce-train-policy --config FILE`, default training/rl/bruce_walk.yaml).
 
-Sections: `train` (seed, iterations, checkpoints, the action scale, the warm start), `env` (`WalkEnvConfig`),
-`rewards` (Table II weights by term name; the paper's when left out) and `ppo` (rsl-rl-lib's train config, passed
-on as it is after its keys and numbers are checked). Read through the project's YAML reader, so a bad value is one
-line naming the file and the dotted key; `--set KEY=VALUE` overrides any key.
+Sections: `train` (seed, iterations, checkpoints, the action and reward scales, the warm start), `env`
+(`WalkEnvConfig`), `rewards` (weights by term name; left out: Table II's at the paper's weights, our added terms at
+0) and `ppo` (rsl-rl-lib's train config, passed on after its keys and numbers are checked). Read through the
+project's YAML reader, so a bad value is one line naming the file and the dotted key; `--set KEY=VALUE` overrides
+any key.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from typing import Any
 
 from bruce_hw.yaml_reader import Bound, YamlReader, apply_overrides, bound_lookup, read_yaml
 from training.rl.env import WalkEnvConfig
-from training.rl.rewards import REWARD_TERMS
+from training.rl.rewards import TERMS
 
 DEFAULT_TRAINING_CONFIG = Path(__file__).with_name("bruce_walk.yaml")
 
@@ -39,6 +40,10 @@ BOUNDS: dict[str, Bound] = {
     "train.warm_start.samples": Bound(1000, 10**8, "", "behaviour-cloning observations", integer=True),
     "train.warm_start.epochs": Bound(1, 1000, "", "behaviour-cloning passes", integer=True),
     "train.warm_start.critic_iterations": Bound(0, 10**5, "", "PPO iterations with the actor held", integer=True),
+    "train.warm_start.action_std": Bound(0.0, 10.0, "", "PPO's initial action noise after cloning (network units)",
+                                         low_open=True),
+    "train.warm_start.learning_rate": Bound(1e-7, 1.0, "", "PPO's initial learning rate after cloning", low_open=True),
+    "train.warm_start.entropy_coef": Bound(0.0, 1.0, "", "PPO's entropy bonus after cloning"),
     "rewards.*": Bound(-1e3, 1e3, "", "a reward term's weight"),
     "ppo.num_steps_per_env": Bound(1, 10**4, "", "env steps per env per iteration", integer=True),
     "ppo.algorithm.num_learning_epochs": Bound(1, 100, "", "", integer=True),
@@ -64,6 +69,20 @@ class WarmStart:
     samples: int = 200_000           # observations labelled by it (visited by the cloned network after round 0)
     epochs: int = 20
     critic_iterations: int = 20      # PPO iterations with the actor held: the critic learns the clone's values
+    # PPO settings that replace the `ppo` section's when a run starts from a clone: a scratch run's noise and step
+    # size would undo the clone in a few iterations.
+    action_std: float = 0.2
+    learning_rate: float = 1e-4
+    entropy_coef: float = 0.0
+
+    def ppo(self, cfg: dict) -> dict:
+        """`cfg` (rsl-rl's train config) with the warm start's settings."""
+        cfg = copy.deepcopy(cfg)
+        cfg["actor"].setdefault("distribution_cfg", {"class_name": "GaussianDistribution"})["init_std"] = \
+            self.action_std
+        cfg["algorithm"]["learning_rate"] = self.learning_rate
+        cfg["algorithm"]["entropy_coef"] = self.entropy_coef
+        return cfg
 
 
 @dataclass(frozen=True)
@@ -102,21 +121,21 @@ def parse_training_config(data: Any, path: Path) -> TrainingConfig:
                                 "warm_start"}, required={"seed", "iterations", "checkpoint_every", "action_scale"})
     warm = WarmStart()
     if "warm_start" in train:
-        node = r.mapping("train.warm_start", {"policy", "samples", "epochs", "critic_iterations"})
+        numbers = ("samples", "epochs", "critic_iterations", "action_std", "learning_rate", "entropy_coef")
+        node = r.mapping("train.warm_start", {"policy", *numbers})
         policy = node.get("policy")
         if policy is not None and (not isinstance(policy, str) or not policy):
             raise r.fail("train.warm_start.policy", "an ONNX policy path or null", policy)
         warm = WarmStart(policy=_beside(path, policy) if policy else None,
-                         **{k: r.number(f"train.warm_start.{k}") for k in ("samples", "epochs", "critic_iterations")
-                            if k in node})
+                         **{k: r.number(f"train.warm_start.{k}") for k in numbers if k in node})
     try:
         env = WalkEnvConfig.from_dict(data.get("env", {}), str(path)) if "env" in data else \
             WalkEnvConfig(source=str(path))
     except ValueError as exc:
         raise TrainingConfigError(str(exc)) from None
-    weights = {name: weight for name, (_, weight) in REWARD_TERMS.items()}
+    weights = {name: weight for name, (_, weight) in TERMS.items()}
     if "rewards" in data:
-        for name in r.mapping("rewards", set(REWARD_TERMS)):
+        for name in r.mapping("rewards", set(TERMS)):
             weights[name] = r.number(f"rewards.{name}")
     return TrainingConfig(path=path, seed=r.number("train.seed"), iterations=r.number("train.iterations"),
                           checkpoint_every=r.number("train.checkpoint_every"),
