@@ -54,6 +54,9 @@ def test_resume_refuses_other_settings(tmp_path, capsys):
     assert train_policy(["--out", str(run), "--resume", *SHORT, "--set", "train.action_scale=0.3"]) == 2
     assert "the run was started with other settings" in capsys.readouterr().err
     assert train_policy(["--out", str(run), *SHORT]) == 2  # not over an existing run without --resume
+    # A longer run is the same run: it may be extended.
+    assert train_policy(["--out", str(run), "--resume", *SHORT, "--set", "train.iterations=5"]) == 0
+    assert torch.load(run / CHECKPOINT, weights_only=False)["trainer"]["iteration"] == 5
 
 
 @pytest.fixture(scope="module")

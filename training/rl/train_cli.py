@@ -11,6 +11,7 @@ environments' state and the random generators, so `--resume` continues exactly),
 from __future__ import annotations
 
 import argparse
+import copy
 import hashlib
 import logging
 import os
@@ -85,16 +86,24 @@ def _prepare(args: argparse.Namespace) -> tuple:
         raise TrainingConfigError(f"{args.out}: holds a run already (continue it with --resume, or choose "
                                   "another --out)")
     resumed = torch.load(checkpoint, weights_only=False) if args.resume else None
-    if resumed is not None and resumed["run"] != _run_identity(config, robot.path, args):
+    if resumed is not None and _extensible(resumed["run"]) != _run_identity(config, robot.path, args):
         raise TrainingConfigError(f"{checkpoint}: --resume: the run was started with other settings "
                                   f"(config, robot config or warm start); start a new --out")
     return robot, config, resumed
 
 
 def _run_identity(config: TrainingConfig, robot_path: Path, args: argparse.Namespace) -> dict:
-    """What a resumed run must share with its start."""
-    return {"config": config.raw, "robot_config_sha256": _sha256(robot_path),
+    """What a resumed run must share with its start: everything but `train.iterations` (a run may be extended)."""
+    raw = copy.deepcopy(config.raw)
+    raw.get("train", {}).pop("iterations", None)
+    return {"config": raw, "robot_config_sha256": _sha256(robot_path),
             "warm_start": str(config.warm_start.policy) if config.warm_start.policy else None}
+
+
+def _extensible(identity: dict) -> dict:
+    identity = copy.deepcopy(identity)
+    identity["config"].get("train", {}).pop("iterations", None)
+    return identity
 
 
 def _sha256(path: Path) -> str:
