@@ -54,6 +54,14 @@ def euler_of(quat: Sequence[float]) -> np.ndarray:
     return np.array([roll, pitch, yaw])
 
 
+def euler_rows(quats: np.ndarray) -> np.ndarray:
+    """`euler_of` of each row of an (N, 4) array of quaternions: (N, 3), in numpy (a batch of simulations)."""
+    w, x, y, z = np.asarray(quats).T
+    return np.stack([np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
+                     np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0)),
+                     np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))], axis=1)
+
+
 def rotate_to_body(quat: Sequence[float], v_world: np.ndarray) -> np.ndarray:
     """R^T v: a world vector in the body frame."""
     return np.array(rotation_entries(quat)).reshape(3, 3).T @ v_world

@@ -17,8 +17,12 @@ FALL_TILT_RAD = math.pi / 4  # ... or the base is tilted more than this
 
 
 def has_fallen(truth: GroundTruth, nominal_base_height: float) -> bool:
-    return float(truth.base_pos[2]) < FALL_HEIGHT_FRACTION * nominal_base_height or \
-        tilt_of(truth.base_quat) > FALL_TILT_RAD
+    return bool(fallen(float(truth.base_pos[2]), tilt_of(truth.base_quat), nominal_base_height))
+
+
+def fallen(base_height, tilt, nominal_base_height: float):
+    """The rule on numbers or arrays (a batch of simulations: training/rl): base height (m), tilt (rad)."""
+    return (base_height < FALL_HEIGHT_FRACTION * nominal_base_height) | (tilt > FALL_TILT_RAD)
 
 
 def fall_rule() -> dict:

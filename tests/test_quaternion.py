@@ -10,6 +10,7 @@ from bruce_hw.quaternion import (
     body_z_in_world,
     cos_tilt_of,
     euler_of,
+    euler_rows,
     roll_pitch_quaternion,
     rotate_to_body,
     rotation_entries,
@@ -79,3 +80,8 @@ def test_roll_pitch_quaternion_is_zyx_with_yaw_zero(roll, pitch):
     quat = roll_pitch_quaternion(roll, pitch)
     assert math.fsum(v * v for v in quat) == pytest.approx(1.0, abs=1e-15)
     np.testing.assert_allclose(euler_of(quat), [roll, pitch, 0.0], atol=1e-12)
+
+
+def test_euler_rows_is_euler_of_on_each_row():
+    quats = np.stack(QUATERNIONS)
+    np.testing.assert_allclose(euler_rows(quats), np.stack([euler_of(q) for q in quats]), atol=1e-12)

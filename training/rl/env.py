@@ -22,10 +22,10 @@ from mujoco import rollout
 
 from bruce_hw.config import RobotConfig
 from bruce_hw.mock import CONTACT_THRESHOLD_N
-from bruce_hw.quaternion import rotation_entries
+from bruce_hw.quaternion import euler_rows, rotation_entries
 from bruce_hw.yaml_reader import Bound, YamlReader
 from runtime.commands import COMMAND_LIMITS
-from runtime.falls import FALL_HEIGHT_FRACTION, FALL_TILT_RAD
+from runtime.falls import fallen
 from runtime.policy import ObservationBuilder
 from runtime.run import target_bounds
 from runtime.walking.gait import gait_phase, swing_height
@@ -250,13 +250,13 @@ class BruceWalkEnv:
         self._qd_prev, self._linvel_prev, self._angvel_prev = truth.qd.copy(), truth.linvel.copy(), truth.angvel.copy()
         self._advance_schedules()
         info = {"reward_terms": terms, "episode_length": self.episode_length.copy(), "walk_step": walk_step}
-        fallen = truth.fallen
-        done = np.flatnonzero(fallen | time_out)
+        fell = truth.fallen
+        done = np.flatnonzero(fell | time_out)
         if len(done):
             self._reset(done)
             truth = self.truth()
         self.obs = self._observe(truth)
-        return self.obs, reward, fallen, time_out, info
+        return self.obs, reward, fell, time_out, info
 
     def close(self) -> None:
         self._rollout.close()
@@ -309,16 +309,13 @@ class BruceWalkEnv:
         vx, vy, vz = qvel[:, 0], qvel[:, 1], qvel[:, 2]
         linvel = np.stack([r00 * vx + r10 * vy + r20 * vz, r01 * vx + r11 * vy + r21 * vz,
                            r02 * vx + r12 * vy + r22 * vz], axis=1)
-        # bruce_hw.quaternion.euler_of on arrays
-        yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-        euler = np.stack([np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
-                          np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0)), yaw], axis=1)
+        euler = euler_rows(qpos[:, 3:7])
+        yaw = euler[:, 2]
         c, s = np.cos(yaw), np.sin(yaw)
         heading_linvel = np.stack([c * vx + s * vy, -s * vx + c * vy, vz], axis=1)
-        fallen = (pos[:, 2] < FALL_HEIGHT_FRACTION * self.sim.nominal_base_height) | \
-            (np.arccos(np.clip(r22, -1.0, 1.0)) > FALL_TILT_RAD)
+        fell = fallen(pos[:, 2], np.arccos(np.clip(r22, -1.0, 1.0)), self.sim.nominal_base_height)
         return BaseTruth(pos=pos.copy(), linvel=linvel, angvel=qvel[:, 3:6].copy(), euler=euler,
-                         heading_linvel=heading_linvel, fallen=fallen, q=qpos[:, self.sim.qpos].copy(),
+                         heading_linvel=heading_linvel, fallen=fell, q=qpos[:, self.sim.qpos].copy(),
                          qd=qvel[:, self.sim.dofs].copy())
 
     def _walk_step(self, a: np.ndarray, truth: BaseTruth) -> WalkStep:

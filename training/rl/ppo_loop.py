@@ -16,7 +16,6 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 
-import numpy as np
 import torch
 from rsl_rl.algorithms import PPO
 
@@ -56,6 +55,11 @@ class PolicyTrainer:
     def actor(self) -> torch.nn.Module:
         return self.alg.get_policy()
 
+    @property
+    def mean_return(self) -> float:
+        """Mean return of the last 100 finished episodes (nan before the first)."""
+        return statistics.fmean(self._returns) if self._returns else float("nan")
+
     def step_iteration(self) -> IterationStats:
         """One PPO iteration: `num_steps_per_env` steps of every env, then the update."""
         start = time.perf_counter()
@@ -76,7 +80,7 @@ class PolicyTrainer:
         self.iteration += 1
         return IterationStats(
             iteration=self.iteration, steps=steps * self.env.num_envs, seconds=time.perf_counter() - start,
-            mean_reward=statistics.fmean(self._returns) if self._returns else float("nan"),
+            mean_reward=self.mean_return,
             mean_length_s=statistics.fmean(self._lengths) * self.env.dt if self._lengths else float("nan"),
             losses={k: float(v) for k, v in losses.items()}, learning_rate=float(self.alg.learning_rate),
             action_std=float(self.actor.output_std.detach().mean()), terms=terms)
@@ -107,9 +111,3 @@ class PolicyTrainer:
         self._episode_return = state["episode_return"].clone()
         self._episode_steps = state["episode_steps"].clone()
 
-
-def parameters_vector(trainer: PolicyTrainer) -> np.ndarray:
-    """Every actor and critic parameter and buffer, flattened: what two runs compare to be the same run."""
-    parts = [t.detach().flatten().double() for m in (trainer.alg.get_policy(), trainer.alg.critic)
-             for t in [*m.parameters(), *m.buffers()]]
-    return torch.cat(parts).numpy()

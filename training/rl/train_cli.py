@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import argparse
 import copy
-import hashlib
+import dataclasses
 import logging
 import os
 import shlex
@@ -25,6 +25,7 @@ import torch
 import yaml
 
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
+from training.dataset import file_sha256
 from training.rl.train_config import DEFAULT_TRAINING_CONFIG, TrainingConfig, TrainingConfigError, load_training_config
 
 CHECKPOINT = "checkpoint.pt"
@@ -73,8 +74,7 @@ def _prepare(args: argparse.Namespace) -> tuple:
         policy = None if args.warm_start == "none" else Path(args.warm_start)
         if policy is not None and not policy.is_file():
             raise FileNotFoundError(f"{policy}: --warm-start policy file not found")
-        config = config.with_overrides(warm_start=type(config.warm_start)(**{**config.warm_start.__dict__,
-                                                                             "policy": policy}))
+        config = dataclasses.replace(config, warm_start=dataclasses.replace(config.warm_start, policy=policy))
     if config.warm_start.policy is not None and not config.warm_start.policy.is_file():
         raise FileNotFoundError(f"{config.path}: train.warm_start.policy: {config.warm_start.policy} not found")
     if args.stop_after is not None and args.stop_after < 1:
@@ -86,28 +86,23 @@ def _prepare(args: argparse.Namespace) -> tuple:
         raise TrainingConfigError(f"{args.out}: holds a run already (continue it with --resume, or choose "
                                   "another --out)")
     resumed = torch.load(checkpoint, weights_only=False) if args.resume else None
-    if resumed is not None and _extensible(resumed["run"]) != _run_identity(config, robot.path, args):
+    if resumed is not None and _extensible(resumed["run"]) != _extensible(_run_identity(config, robot.path)):
         raise TrainingConfigError(f"{checkpoint}: --resume: the run was started with other settings "
                                   f"(config, robot config or warm start); start a new --out")
     return robot, config, resumed
 
 
-def _run_identity(config: TrainingConfig, robot_path: Path, args: argparse.Namespace) -> dict:
-    """What a resumed run must share with its start: everything but `train.iterations` (a run may be extended)."""
-    raw = copy.deepcopy(config.raw)
-    raw.get("train", {}).pop("iterations", None)
-    return {"config": raw, "robot_config_sha256": _sha256(robot_path),
+def _run_identity(config: TrainingConfig, robot_path: Path) -> dict:
+    """What a run is started with; a resumed run must share it but for `train.iterations` (`_extensible`)."""
+    return {"config": config.raw, "robot_config_sha256": file_sha256(robot_path),
             "warm_start": str(config.warm_start.policy) if config.warm_start.policy else None}
 
 
 def _extensible(identity: dict) -> dict:
+    """`identity` less `train.iterations`: a finished run may be extended."""
     identity = copy.deepcopy(identity)
     identity["config"].get("train", {}).pop("iterations", None)
     return identity
-
-
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict | None) -> int:
@@ -127,19 +122,20 @@ def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict
     ppo = config.warm_start.ppo(config.ppo) if config.warm_start.policy else config.ppo
     trainer = PolicyTrainer(vec, ppo, seed=config.seed)
     writer = SummaryWriter(log_dir=str(args.out / "tb"))
-    identity = _run_identity(config, robot.path, args)
+    identity = _run_identity(config, robot.path)
     history = resumed["history"] if resumed else {"wall_s": 0.0, "warm_start": None, "env_steps": 0}
-    started = time.perf_counter()
+    since = time.perf_counter()
 
     def save() -> None:
-        history["wall_s"] += time.perf_counter() - started_chunk[0]
-        started_chunk[0] = time.perf_counter()
+        nonlocal since
+        now = time.perf_counter()
+        history["wall_s"] += now - since
+        since = now
         state = {"run": identity, "trainer": trainer.state_dict(), "history": history}
         tmp = args.out / (CHECKPOINT + ".tmp")
         torch.save(state, tmp)
         os.replace(tmp, args.out / CHECKPOINT)
 
-    started_chunk = [started]
     try:
         warm_iterations = config.warm_start.critic_iterations if config.warm_start.policy else 0
         if resumed:
@@ -150,7 +146,7 @@ def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict
                                   config.warm_start.epochs, config.seed, progress=log.info)
             fit_critic(trainer, warm_iterations, report=lambda s: _log(writer, s))
             history["warm_start"] = {"policy": str(config.warm_start.policy),
-                                     "policy_sha256": _sha256(config.warm_start.policy), **cloned,
+                                     "policy_sha256": file_sha256(config.warm_start.policy), **cloned,
                                      "critic_iterations": warm_iterations}
             save()
         total = warm_iterations + config.iterations
@@ -179,24 +175,19 @@ def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict
         export_policy(trainer.actor, out, env.get_observations()["policy"].shape[1], robot.standing_pose,
                       config.action_scale, {
                           "command": args.command_line, "seed": config.seed, "config": str(config.path),
-                          "config_sha256": _sha256(config.path), "overrides": list(args.set),
-                          "robot_config": str(robot.path), "robot_config_sha256": _sha256(robot.path),
+                          "config_sha256": file_sha256(config.path), "overrides": list(args.set),
+                          "robot_config": str(robot.path), "robot_config_sha256": file_sha256(robot.path),
                           "resolved_config": yaml.safe_dump(config.raw, sort_keys=False),
                           "warm_start": history["warm_start"], "iterations": trainer.iteration,
                           "env_steps": history["env_steps"], "train_wall_s": round(history["wall_s"], 1),
                           "versions": {name: _version(name) for name in ("rsl-rl-lib", "mujoco", "torch", "numpy")},
-                          "final": {"mean_episode_reward": stats_or_nan(trainer), "machine": os.uname().machine}})
+                          "final": {"mean_episode_reward": trainer.mean_return, "machine": os.uname().machine}})
         print(f"bruce-train-policy: wrote {out} and {out}.json; checkpoint {args.out / CHECKPOINT}; "
               f"TensorBoard: {args.out / 'tb'}")
         return 0
     finally:
         writer.close()
         env.close()
-
-
-def stats_or_nan(trainer) -> float:
-    returns = list(trainer._returns)
-    return float(sum(returns) / len(returns)) if returns else float("nan")
 
 
 def _version(name: str) -> str:

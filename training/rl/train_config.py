@@ -99,9 +99,6 @@ class TrainingConfig:
     ppo: dict[str, Any]
     raw: dict
 
-    def with_overrides(self, **values: Any) -> TrainingConfig:
-        return type(self)(**{**self.__dict__, **values})
-
 
 def load_training_config(path: str | Path = DEFAULT_TRAINING_CONFIG, overrides: list[str] | None = None
                          ) -> TrainingConfig:
