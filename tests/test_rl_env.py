@@ -147,13 +147,17 @@ def test_batched_angle_wrapping_is_math_remainder():
 
 def test_randomisation_draws_stay_in_their_ranges():
     ranges = RandomisationRanges(ground_friction=(0.3, 1.1), mass_scale=(0.95, 0.95), latency_ticks=(2, 5),
-                                 torque_lag_s=(0.001, 0.004))
+                                 torque_lag_s=(0.001, 0.004), bias_q_rad=(-0.01, 0.02), bias_angvel_rads=(-0.02, 0.0),
+                                 bias_euler_rad=(-0.03, 0.03))
     draws = draw(ranges, np.random.default_rng(1), 20000, 10)
     for f in dataclasses.fields(draws):
         low, high = getattr(ranges, f.name)
         values = getattr(draws, f.name)
-        per_joint = ("joint_coulomb_nm", "joint_viscous_nms", "armature_scale", "armature_add_kgm2", "torque_scale")
-        assert values.shape == ((20000, 10) if f.name in per_joint else (20000,))
+        per_joint = ("joint_coulomb_nm", "joint_viscous_nms", "armature_scale", "armature_add_kgm2", "torque_scale",
+                     "bias_q_rad")
+        per_axis = ("bias_angvel_rads", "bias_euler_rad")
+        assert values.shape == ((20000, 10) if f.name in per_joint else (20000, 3) if f.name in per_axis
+                                else (20000,))
         assert values.min() >= low and values.max() <= high, f.name
         assert values.min() <= low + 0.01 * (high - low) and values.max() >= high - 0.01 * (high - low), f.name
     assert np.all(draws.mass_scale == 0.95)
@@ -200,6 +204,21 @@ def test_each_episodes_draw_reaches_its_model_and_the_observation_noise(config):
         r = np.concatenate(residuals[name]).ravel()
         assert np.std(r) == pytest.approx(std, rel=0.12), name
         assert abs(np.mean(r)) < 4 * std / math.sqrt(len(r)), name
+
+
+def test_sensor_biases_are_constant_offsets_of_the_observation_per_episode(config):
+    bias = {"bias_q_rad": (-0.02, 0.02), "bias_angvel_rads": (-0.05, 0.05), "bias_euler_rad": (-0.03, 0.03)}
+    env = make_env(config, 6, seed=4, randomisation=bias | NO_NOISE)
+    s, d = env.builder.slices, env.draws
+    assert np.all(np.abs(d.bias_q_rad) > 0) and len(np.unique(d.bias_q_rad)) == d.bias_q_rad.size
+    for _ in range(5):
+        obs = env.step(np.tile(config.standing_pose, (6, 1)))[0]["policy"]
+        truth = env.truth()
+        np.testing.assert_allclose(obs[:, s["q"]] - truth.q, d.bias_q_rad, atol=1e-9)
+        np.testing.assert_allclose(obs[:, s["base_angvel"]] - truth.angvel, d.bias_angvel_rads, atol=1e-9)
+        np.testing.assert_allclose(obs[:, s["euler"].start:s["euler"].start + 2] - truth.euler[:, :2],
+                                   d.bias_euler_rad[:, :2], atol=1e-9)
+        np.testing.assert_allclose(obs[:, s["qd"]], truth.qd, atol=1e-9)  # no velocity bias
 
 
 def test_pushes_move_the_base_and_the_critic_sees_them_with_its_privileged_state(config):
@@ -316,8 +335,10 @@ def test_settings_read_from_yaml_with_errors_naming_the_file_and_key():
     assert WalkEnvConfig.from_dict(tree["env"], "bruce_walk.yaml") == WalkEnvConfig()
     tree["env"]["commands"]["vx"] = [-0.3, 0.8]
     tree["env"]["randomisation"]["noise"]["q_rad"] = [0.001, 0.002]
+    tree["env"]["randomisation"]["bias"] = {"angvel_rads": [-0.01, 0.02]}
     custom = WalkEnvConfig.from_dict(tree["env"], "bruce_walk.yaml")
     assert custom.command_vx == (-0.3, 0.8) and custom.randomisation.noise_q_rad == (0.001, 0.002)
+    assert custom.randomisation.bias_angvel_rads == (-0.01, 0.02) and custom.randomisation.bias_q_rad == (0.0, 0.0)
     assert WalkEnvConfig.from_dict({"num_envs": 8}, "x.yaml", key="") == WalkEnvConfig(num_envs=8)
     for change, message in (
             (("commands", "vx", [-0.8, 0.5]), r"bruce_walk.yaml: env.commands.vx\[0\]: expected a number in \[-0.5, 1"),
@@ -325,6 +346,8 @@ def test_settings_read_from_yaml_with_errors_naming_the_file_and_key():
             (("pushes", "impulse", 1.0), r"env.pushes.impulse: unknown key"),
             (("randomisation", "latency_ticks", [0, 12]), r"env.randomisation.latency_ticks\[1\]: expected an integer"),
             (("randomisation", "mass_scale", 1.1), r"env.randomisation.mass_scale: expected \[low, high\]"),
+            (("randomisation", "bias", {"gyro": [0.0, 0.1]}), r"env.randomisation.bias.gyro: unknown key"),
+            (("randomisation", "bias", {"q_rad": [0.0, 0.5]}), r"env.randomisation.bias.q_rad\[1\]: expected a number"),
             (("num_envs", None, 0), r"env.num_envs: expected an integer in \[1, 65536\]")):
         broken = yaml.safe_load(DEFAULT_YAML)
         section, name, value = change

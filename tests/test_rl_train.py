@@ -16,7 +16,7 @@ from training.rl.train_cli import CHECKPOINT
 from training.rl.train_cli import main as train_policy
 from training.rl.train_config import load_training_config
 from training.rl.vec_env import RslVecEnv
-from training.rl.warm_start import clone_policy
+from training.rl.warm_start import TransferMismatch, clone_policy, transfer_policy
 
 SHORT = ["--set", "env.num_envs=6", "--set", "ppo.num_steps_per_env=6", "--set", "train.iterations=4",
          "--set", "train.checkpoint_every=1", "--set", "env.episode_s=0.3", "--set", "ppo.actor.hidden_dims=[16]",
@@ -119,13 +119,81 @@ def test_warm_start_clones_the_policy(tmp_path):
 
 
 def test_a_warm_started_run_clones_then_trains_with_the_warm_start_settings(tmp_path):
-    run = tmp_path / "warm"
-    policy = str(load_config().models.policy)
-    assert train_policy(["--out", str(run), *SHORT, "--warm-start", policy, "--set", "train.warm_start.samples=1000",
-                         "--set", "train.warm_start.epochs=2", "--set", "train.warm_start.critic_iterations=1"]) == 0
+    run, split = tmp_path / "warm", tmp_path / "split"
+    warm = ["--warm-start", str(load_config().models.policy), "--set", "train.warm_start.samples=1000",
+            "--set", "train.warm_start.epochs=2", "--set", "train.warm_start.critic_iterations=1",
+            "--set", "train.warm_start.anchor_weight=2.0", "--set", "train.snapshot_every=2"]
+    assert train_policy(["--out", str(run), *SHORT, *warm]) == 0
     state = torch.load(run / CHECKPOINT, weights_only=False)
     assert state["history"]["warm_start"]["policy_sha256"] and state["trainer"]["iteration"] == 5  # 1 + 4
     std = state["trainer"]["alg"]["actor_state_dict"]["distribution.std_param"]
     assert torch.allclose(std, torch.full_like(std, 0.2), atol=0.02)  # not the scratch run's 1.0
     sidecar = (run / "policy.onnx.json").read_text()
     assert "--warm-start" in sidecar and "policy_sha256" in sidecar
+    assert sorted(p.name for p in (run / "snapshots").glob("*.onnx")) == ["policy_2.onnx", "policy_4.onnx"]
+    assert state["trainer"]["anchor"]["weight"] == 2.0
+    # The anchor (the clone after the critic fit) and its optimizer survive a resume: the same run.
+    assert train_policy(["--out", str(split), "--stop-after", "2", *SHORT, *warm]) == 0
+    assert train_policy(["--out", str(split), "--resume", *SHORT, *warm]) == 0
+    a, b = _checkpoint_parameters(run), _checkpoint_parameters(split)
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+
+
+def _actor_means(trainer: PolicyTrainer, obs: np.ndarray) -> torch.Tensor:
+    from tensordict import TensorDict
+    with torch.no_grad():
+        return trainer.actor(TensorDict({"policy": torch.from_numpy(obs).float()}, batch_size=[len(obs)]))
+
+
+def test_the_anchor_holds_the_actor_near_its_policy_at_the_start():
+    robot = load_config()
+    config = load_training_config(overrides=["env.num_envs=8", "env.nthread=1", "ppo.num_steps_per_env=8",
+                                             "ppo.actor.hidden_dims=[32]", "ppo.critic.hidden_dims=[32]",
+                                             "ppo.algorithm.schedule=fixed", "ppo.algorithm.learning_rate=3.0e-3"])
+    drift = {}
+    for weight in (0.0, 50.0):
+        env = BruceWalkEnv(robot, config.env, seed=5, reward_weights=config.reward_weights)
+        trainer = PolicyTrainer(RslVecEnv(env, config.action_scale, config.reward_scale), config.ppo, seed=5)
+        obs = env.get_observations()["policy"].copy()
+        trainer.set_anchor(weight)
+        start = _actor_means(trainer, obs)
+        losses = [trainer.step_iteration().losses for _ in range(6)]
+        drift[weight] = float(torch.sqrt(torch.mean((_actor_means(trainer, obs) - start) ** 2)))
+        assert ("anchor" in losses[-1]) == (weight > 0)
+        env.close()
+    assert drift[50.0] < 0.5 * drift[0.0], drift
+
+
+def test_transfer_takes_the_distilled_policy_exactly_and_keeps_its_input_scaling():
+    robot = load_config()
+    config = load_training_config(overrides=["env.num_envs=8", "env.nthread=1", "ppo.num_steps_per_env=8"])
+    env = BruceWalkEnv(robot, config.env, seed=2, reward_weights=config.reward_weights)
+    vec = RslVecEnv(env, config.action_scale, config.reward_scale)
+    trainer = PolicyTrainer(vec, config.warm_start.ppo(config.ppo), seed=2)
+    teacher = OnnxPolicy(robot.models.policy, 44, robot.n_joints)
+    result = transfer_policy(trainer, vec, robot.models.policy)
+    assert result["transfer_max_error_rad"] < 1e-5
+    obs = np.concatenate([env.step(np.stack([teacher(o) for o in env.get_observations()["policy"]]))[0]["policy"]
+                          for _ in range(5)])
+    got = vec.targets(_actor_means(trainer, obs).double().numpy())
+    np.testing.assert_allclose(got, np.stack([teacher(o) for o in obs]), atol=1e-5)
+    mean = trainer.actor.obs_normalizer.mean
+    trainer.step_iteration()  # PPO moves the weights, not the input scaling
+    assert torch.equal(trainer.actor.obs_normalizer.mean, mean)
+    env.close()
+    # An actor of other layers cannot take the weights: said, naming both shapes.
+    small = load_training_config(overrides=["env.num_envs=2", "env.nthread=1", "ppo.actor.hidden_dims=[16]"])
+    env = BruceWalkEnv(robot, small.env, seed=0, reward_weights=small.reward_weights)
+    vec = RslVecEnv(env, small.action_scale, small.reward_scale)
+    with pytest.raises(TransferMismatch, match=r"\(256, 44\).*\(16, 44\)"):
+        transfer_policy(PolicyTrainer(vec, small.ppo, seed=0), vec, robot.models.policy)
+    env.close()
+
+
+def test_a_transfer_the_actor_cannot_take_is_one_line_naming_the_key(tmp_path, capsys):
+    policy = str(load_config().models.policy)
+    assert train_policy(["--out", str(tmp_path / "r"), *SHORT, "--warm-start", policy,
+                         "--set", "train.warm_start.method=transfer"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "train.warm_start.method transfer" in err and "(16, 44)" in err, err

@@ -4,6 +4,7 @@ while it walks."""
 import numpy as np
 import pytest
 
+from bruce_hw.config import load_config
 from bruce_hw.mock import MujocoBackend
 from runtime.commands import CommandSchedule
 from runtime.estimation import GroundTruthEstimator
@@ -36,6 +37,18 @@ def test_teacher_walks_the_command_grid(config, cmd):
 def test_distilled_policy_walks_the_command_grid(config, cmd):
     assert config.models.policy is not None  # the committed ONNX policy is the default
     assert_walks_and_tracks(walk(config, cmd, 20.0, controller_kind="policy"), cmd)
+
+
+@pytest.fixture(scope="module")
+def rl_config():
+    """The robot config with the committed PPO policy (bruce-train-policy; docs/rl.md)."""
+    return load_config(overrides=["policy.model=policies/bruce_walk_rl.onnx"])
+
+
+@pytest.mark.parametrize("cmd", GRID)
+def test_ppo_policy_walks_the_command_grid(rl_config, cmd):
+    assert rl_config.models.policy.name == "bruce_walk_rl.onnx"
+    assert_walks_and_tracks(walk(rl_config, cmd, 20.0, controller_kind="policy"), cmd)
 
 
 class PushedAt:

@@ -128,9 +128,9 @@ def _join(key: str, name: str) -> str:
 
 # The env's arrays that carry over from one policy step to the next (with the draws, the observation builder's clock
 # and heading reference, and the random generator): what a checkpoint must hold.
-_CONTINUED = ("state", "_late", "_noise_std", "command", "_command_left", "_push_countdown", "_push_left",
-              "push_wrench", "last_action", "last_action2", "_qd_prev", "_linvel_prev", "_angvel_prev", "tau",
-              "episode_length", "mean_velocity")
+_CONTINUED = ("state", "_late", "_noise_std", "_sensor_bias", "command", "_command_left", "_push_countdown",
+              "_push_left", "push_wrench", "last_action", "last_action2", "_qd_prev", "_linvel_prev", "_angvel_prev",
+              "tau", "episode_length", "mean_velocity")
 MEAN_VELOCITY_S = 0.5  # s, time constant of the averaged velocity the added tracking term scores: about a step cycle
 
 
@@ -200,6 +200,7 @@ class BruceWalkEnv:
         self.draws: Draws = draw(config.randomisation, self.rng, n, j)
         self._late = np.zeros((n, self.decimation), dtype=bool)  # physics steps still on the previous target
         self._noise_std = np.zeros((n, 2 * j + 9))                # q, qd, linvel, angvel, euler
+        self._sensor_bias = np.zeros((n, 2 * j + 9))              # ... their constant offsets this episode
         self.command = np.zeros((n, 3))
         self._command_left = np.zeros(n, dtype=int)
         self._push_countdown = np.zeros(n, dtype=int)
@@ -342,7 +343,7 @@ class BruceWalkEnv:
 
     def _observe(self, truth: BaseTruth) -> dict[str, np.ndarray]:
         j = self.num_actions
-        noise = self.rng.standard_normal(self._noise_std.shape) * self._noise_std
+        noise = self.rng.standard_normal(self._noise_std.shape) * self._noise_std + self._sensor_bias
         policy = self.builder.observe(self.command, truth.q + noise[:, :j], truth.qd + noise[:, j:2 * j],
                                       truth.linvel + noise[:, 2 * j:2 * j + 3],
                                       truth.angvel + noise[:, 2 * j + 3:2 * j + 6],
@@ -403,6 +404,8 @@ class BruceWalkEnv:
         stds = (draws.noise_q_rad, draws.noise_qd_rads, draws.noise_linvel_ms, draws.noise_angvel_rads,
                 draws.noise_euler_rad)
         self._noise_std[envs] = np.repeat(np.stack(stds, axis=1), (j, j, 3, 3, 3), axis=1)
+        self._sensor_bias[envs] = np.concatenate([draws.bias_q_rad, np.zeros((n, j + 3)), draws.bias_angvel_rads,
+                                                  draws.bias_euler_rad], axis=1)
         q = np.clip(sim.standing_pose + self.rng.uniform(-1.0, 1.0, size=(n, j)) * cfg.reset_joint_noise_rad,
                     self.robot.q_lower, self.robot.q_upper)
         yaw = self.rng.uniform(-math.pi, math.pi, size=n)

@@ -23,11 +23,13 @@ from training.rl.sim_model import RANDOMISED_FIELDS, SimModel
 
 def _range(key: str, default: tuple[float, float], bound: Bound, per: str = "episode") -> Any:
     """A randomised quantity: its YAML key, its [low, high] default and the bound both ends must be inside.
-    `per`: "episode" (one draw per episode) or "joint" (one per joint per episode)."""
+    `per`: "episode" (one draw per episode), "joint" (one per joint per episode) or "axis" (one per base axis x, y, z
+    per episode)."""
     return field(default=default, metadata={"key": key, "bound": bound, "per": per})
 
 
 _NOISE = Bound(0.0, 1.0, "", "a noise std")
+_BIAS = Bound(-0.2, 0.2, "", "a sensor's constant offset")
 
 
 @dataclass(frozen=True)
@@ -66,6 +68,11 @@ class RandomisationRanges:
     noise_linvel_ms: tuple[float, float] = _range("noise.linvel_ms", (0.0, 0.05), _NOISE)
     noise_angvel_rads: tuple[float, float] = _range("noise.angvel_rads", (0.0, 0.03), _NOISE)
     noise_euler_rad: tuple[float, float] = _range("noise.euler_rad", (0.0, 0.01), _NOISE)
+    # Sensor offsets, constant over an episode (gap profiles: encoder zero offsets up to 0.01 rad, gyro drift up to
+    # 0.01 rad/s in `harsh`; an attitude filter's slow error).
+    bias_q_rad: tuple[float, float] = _range("bias.q_rad", (0.0, 0.0), _BIAS, "joint")
+    bias_angvel_rads: tuple[float, float] = _range("bias.angvel_rads", (0.0, 0.0), _BIAS, "axis")
+    bias_euler_rad: tuple[float, float] = _range("bias.euler_rad", (0.0, 0.0), _BIAS, "axis")
 
     def __post_init__(self) -> None:
         r = YamlReader(self.source, None, ValueError)
@@ -78,17 +85,20 @@ class RandomisationRanges:
         """The ranges under `key` of the reader's tree (every key optional: the defaults fill in)."""
         keys = [f.metadata["key"] for f in _RANGES]
         node = r.mapping(key, {k.split(".")[0] for k in keys})
-        noise_keys = {k.removeprefix("noise.") for k in keys if k.startswith("noise.")}
-        noise = r.mapping(f"{key}.noise", noise_keys) if "noise" in node else {}
+        groups = {group: r.mapping(f"{key}.{group}", {k.removeprefix(f"{group}.") for k in keys
+                                                      if k.startswith(f"{group}.")}) if group in node else {}
+                  for group in _GROUPS}
         values = {}
         for f, k in zip(_RANGES, keys, strict=True):
-            where, name = (noise, k.removeprefix("noise.")) if k.startswith("noise.") else (node, k)
+            group, _, name = k.rpartition(".")
+            where = groups[group] if group else node
             if name in where:
                 values[f.name] = where[name]
         return cls(source=str(r.source), key=key, **values)
 
 
 _RANGES = tuple(f for f in fields(RandomisationRanges) if "key" in f.metadata)
+_GROUPS = ("noise", "bias")
 
 
 def _checked_range(r: YamlReader, key: str, value: Any, bound: Bound) -> tuple:
@@ -103,7 +113,8 @@ def _checked_range(r: YamlReader, key: str, value: Any, bound: Bound) -> tuple:
 
 @dataclass
 class Draws:
-    """The randomised quantities of a batch of n episodes: (n,) arrays, (n, n_joints) for the per-joint ones."""
+    """The randomised quantities of a batch of n episodes: (n,) arrays, (n, n_joints) for the per-joint ones, (n, 3)
+    for the per-axis ones."""
 
     ground_friction: np.ndarray
     joint_coulomb_nm: np.ndarray
@@ -121,6 +132,9 @@ class Draws:
     noise_linvel_ms: np.ndarray
     noise_angvel_rads: np.ndarray
     noise_euler_rad: np.ndarray
+    bias_q_rad: np.ndarray
+    bias_angvel_rads: np.ndarray
+    bias_euler_rad: np.ndarray
 
     def assign(self, envs: np.ndarray, other: Draws) -> None:
         """Rows `envs` of this batch take the rows of `other`, in order."""
@@ -136,7 +150,7 @@ def draw(ranges: RandomisationRanges, rng: np.random.Generator, n: int, n_joints
     values = {}
     for f in _RANGES:
         low, high = getattr(ranges, f.name)
-        shape = (n, n_joints) if f.metadata["per"] == "joint" else (n,)
+        shape = {"episode": (n,), "joint": (n, n_joints), "axis": (n, 3)}[f.metadata["per"]]
         if f.metadata["bound"].integer:
             values[f.name] = rng.integers(low, high, size=shape, endpoint=True)
         else:

@@ -5,7 +5,9 @@
 
 DIR gets `checkpoint.pt` (every `train.checkpoint_every` iterations and at the end: networks, optimizer, the
 environments' state and the random generators, so `--resume` continues exactly), TensorBoard files in `tb/`
-(losses, learning rate, episode reward and length, each reward term) and `policy.onnx` with its sidecar.
+(losses, learning rate, episode reward and length, each reward term), `policy.onnx` with its sidecar, and with
+`train.snapshot_every` N, `snapshots/policy_<iteration>.onnx` every N iterations (to pick one by `bruce-eval
+walking`).
 """
 
 from __future__ import annotations
@@ -61,6 +63,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return train(args, config, robot, resumed)
+    except TrainingConfigError as exc:
+        print(f"bruce-train-policy: {exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"bruce-train-policy: interrupted; the last checkpoint is in {args.out} (continue with --resume)",
               file=sys.stderr)
@@ -113,7 +118,7 @@ def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict
     from training.rl.export import export_policy
     from training.rl.ppo_loop import PolicyTrainer
     from training.rl.vec_env import RslVecEnv
-    from training.rl.warm_start import clone_policy, fit_critic
+    from training.rl.warm_start import fit_critic, freeze_normaliser
 
     torch.set_num_threads(1)  # the physics threads take the cores; the small networks gain nothing from more
     args.out.mkdir(parents=True, exist_ok=True)
@@ -140,19 +145,25 @@ def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict
         warm_iterations = config.warm_start.critic_iterations if config.warm_start.policy else 0
         if resumed:
             trainer.load_state_dict(resumed["trainer"])
+            if (history["warm_start"] or {}).get("method") == "transfer":
+                freeze_normaliser(trainer)
             log.info("resumed %s at iteration %d", args.out / CHECKPOINT, trainer.iteration)
         elif config.warm_start.policy:
-            cloned = clone_policy(trainer, vec, config.warm_start.policy, config.warm_start.samples,
-                                  config.warm_start.epochs, config.seed, progress=log.info)
+            started = _start_from_policy(trainer, vec, config, log.info)
             fit_critic(trainer, warm_iterations, report=lambda s: _log(writer, s))
+            trainer.set_anchor(config.warm_start.anchor_weight)
             history["warm_start"] = {"policy": str(config.warm_start.policy),
-                                     "policy_sha256": file_sha256(config.warm_start.policy), **cloned,
+                                     "policy_sha256": file_sha256(config.warm_start.policy), **started,
                                      "critic_iterations": warm_iterations}
             save()
         total = warm_iterations + config.iterations
         stop_at = total if args.stop_after is None else min(total, trainer.iteration + args.stop_after)
         bar = tqdm(total=total, initial=trainer.iteration, desc="bruce-train-policy", unit="it",
                    disable=args.no_progress, dynamic_ncols=True)
+        def export(path: Path) -> None:
+            export_policy(trainer.actor, path, env.get_observations()["policy"].shape[1], robot.standing_pose,
+                          config.action_scale, _record(args, config, robot, trainer, history))
+
         while trainer.iteration < stop_at:
             stats = trainer.step_iteration()
             history["env_steps"] += stats.steps
@@ -160,6 +171,8 @@ def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict
             bar.update(1)
             bar.set_postfix(reward=f"{stats.mean_reward:.2f}", length_s=f"{stats.mean_length_s:.1f}",
                             steps_s=f"{stats.steps / stats.seconds:.0f}")
+            if config.snapshot_every and trainer.iteration % config.snapshot_every == 0:
+                export(args.out / "snapshots" / f"policy_{trainer.iteration}.onnx")
             if trainer.iteration % config.checkpoint_every == 0 or trainer.iteration == stop_at:
                 save()
                 if args.no_progress:
@@ -172,22 +185,44 @@ def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict
                   f"continue with --resume. Checkpoint: {args.out / CHECKPOINT}")
             return 0
         out = args.export or args.out / "policy.onnx"
-        export_policy(trainer.actor, out, env.get_observations()["policy"].shape[1], robot.standing_pose,
-                      config.action_scale, {
-                          "command": args.command_line, "seed": config.seed, "config": str(config.path),
-                          "config_sha256": file_sha256(config.path), "overrides": list(args.set),
-                          "robot_config": str(robot.path), "robot_config_sha256": file_sha256(robot.path),
-                          "resolved_config": yaml.safe_dump(config.raw, sort_keys=False),
-                          "warm_start": history["warm_start"], "iterations": trainer.iteration,
-                          "env_steps": history["env_steps"], "train_wall_s": round(history["wall_s"], 1),
-                          "versions": {name: _version(name) for name in ("rsl-rl-lib", "mujoco", "torch", "numpy")},
-                          "final": {"mean_episode_reward": trainer.mean_return, "machine": os.uname().machine}})
+        export(out)
         print(f"bruce-train-policy: wrote {out} and {out}.json; checkpoint {args.out / CHECKPOINT}; "
               f"TensorBoard: {args.out / 'tb'}")
         return 0
     finally:
         writer.close()
         env.close()
+
+
+def _start_from_policy(trainer, vec, config: TrainingConfig, progress) -> dict:
+    """The actor made from `train.warm_start.policy` by its method; what was done and how close it came."""
+    from training.rl.warm_start import TransferMismatch, clone_policy, transfer_policy
+
+    warm = config.warm_start
+    if warm.method in ("auto", "transfer"):
+        try:
+            result = transfer_policy(trainer, vec, warm.policy)
+            progress(f"warm start: weights transferred from {warm.policy} (largest action difference "
+                     f"{result['transfer_max_error_rad']:.2g} rad)")
+            return {"method": "transfer", **result}
+        except TransferMismatch as exc:
+            if warm.method == "transfer":
+                raise TrainingConfigError(f"{config.path}: train.warm_start.method transfer: {exc}") from None
+            progress(f"warm start: {exc}; cloning instead")
+    return {"method": "clone", **clone_policy(trainer, vec, warm.policy, warm.samples, warm.epochs, config.seed,
+                                               progress=progress)}
+
+
+def _record(args: argparse.Namespace, config: TrainingConfig, robot, trainer, history: dict) -> dict:
+    """The exported policy's sidecar record: how to train it again, and what the training reached."""
+    return {"command": args.command_line, "seed": config.seed, "config": str(config.path),
+            "config_sha256": file_sha256(config.path), "overrides": list(args.set),
+            "robot_config": str(robot.path), "robot_config_sha256": file_sha256(robot.path),
+            "resolved_config": yaml.safe_dump(config.raw, sort_keys=False),
+            "warm_start": history["warm_start"], "iterations": trainer.iteration,
+            "env_steps": history["env_steps"], "train_wall_s": round(history["wall_s"], 1),
+            "versions": {name: _version(name) for name in ("rsl-rl-lib", "mujoco", "torch", "numpy")},
+            "final": {"mean_episode_reward": trainer.mean_return, "machine": os.uname().machine}}
 
 
 def _version(name: str) -> str:

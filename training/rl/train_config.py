@@ -21,6 +21,9 @@ from training.rl.rewards import TERMS
 DEFAULT_TRAINING_CONFIG = Path(__file__).with_name("bruce_walk.yaml")
 
 
+WARM_START_METHODS = ("auto", "transfer", "clone")
+
+
 class TrainingConfigError(ValueError):
     """A training config that cannot be used; the message names the file and the key."""
 
@@ -34,6 +37,7 @@ BOUNDS: dict[str, Bound] = {
     "train.seed": Bound(0, 2**31 - 1, "", "torch and numpy seed", integer=True),
     "train.iterations": Bound(1, 10**7, "", "PPO iterations", integer=True),
     "train.checkpoint_every": Bound(1, 10**6, "", "iterations between checkpoints", integer=True),
+    "train.snapshot_every": Bound(0, 10**6, "", "iterations between ONNX snapshots (0: none)", integer=True),
     "train.action_scale": Bound(0.01, 2.0, "rad", "PD target per unit of network output", low_open=True),
     "train.reward_scale": Bound(0.0, 1.0, "", "factor on every reward (0.01: x the policy period, as legged_gym)",
                                 low_open=True),
@@ -44,6 +48,7 @@ BOUNDS: dict[str, Bound] = {
                                          low_open=True),
     "train.warm_start.learning_rate": Bound(1e-7, 1.0, "", "PPO's initial learning rate after cloning", low_open=True),
     "train.warm_start.entropy_coef": Bound(0.0, 1.0, "", "PPO's entropy bonus after cloning"),
+    "train.warm_start.anchor_weight": Bound(0.0, 1e3, "", "pull toward the clone after each PPO update (0: none)"),
     "rewards.*": Bound(-1e3, 1e3, "", "a reward term's weight"),
     "ppo.num_steps_per_env": Bound(1, 10**4, "", "env steps per env per iteration", integer=True),
     "ppo.algorithm.num_learning_epochs": Bound(1, 100, "", "", integer=True),
@@ -74,6 +79,8 @@ class WarmStart:
     action_std: float = 0.2
     learning_rate: float = 1e-4
     entropy_coef: float = 0.0
+    anchor_weight: float = 0.0       # PolicyTrainer.set_anchor: hold the actor near the warm start through PPO
+    method: str = "auto"             # transfer (exact weights), clone (DAgger) or auto (transfer where it fits)
 
     def ppo(self, cfg: dict) -> dict:
         """`cfg` (rsl-rl's train config) with the warm start's settings."""
@@ -91,6 +98,7 @@ class TrainingConfig:
     seed: int
     iterations: int
     checkpoint_every: int
+    snapshot_every: int
     action_scale: float
     reward_scale: float
     warm_start: WarmStart
@@ -114,16 +122,21 @@ def load_training_config(path: str | Path = DEFAULT_TRAINING_CONFIG, overrides: 
 def parse_training_config(data: Any, path: Path) -> TrainingConfig:
     r = YamlReader(path, data, TrainingConfigError, _bound)
     r.mapping("", {"train", "env", "rewards", "ppo"}, required={"train", "ppo"})
-    train = r.mapping("train", {"seed", "iterations", "checkpoint_every", "action_scale", "reward_scale",
-                                "warm_start"}, required={"seed", "iterations", "checkpoint_every", "action_scale"})
+    train = r.mapping("train", {"seed", "iterations", "checkpoint_every", "snapshot_every", "action_scale",
+                                "reward_scale", "warm_start"},
+                      required={"seed", "iterations", "checkpoint_every", "action_scale"})
     warm = WarmStart()
     if "warm_start" in train:
-        numbers = ("samples", "epochs", "critic_iterations", "action_std", "learning_rate", "entropy_coef")
-        node = r.mapping("train.warm_start", {"policy", *numbers})
+        numbers = ("samples", "epochs", "critic_iterations", "action_std", "learning_rate", "entropy_coef",
+                   "anchor_weight")
+        node = r.mapping("train.warm_start", {"policy", "method", *numbers})
         policy = node.get("policy")
+        method = node.get("method", "auto")
+        if method not in WARM_START_METHODS:
+            raise r.fail("train.warm_start.method", " or ".join(WARM_START_METHODS), method)
         if policy is not None and (not isinstance(policy, str) or not policy):
             raise r.fail("train.warm_start.policy", "an ONNX policy path or null", policy)
-        warm = WarmStart(policy=_beside(path, policy) if policy else None,
+        warm = WarmStart(policy=_beside(path, policy) if policy else None, method=method,
                          **{k: r.number(f"train.warm_start.{k}") for k in numbers if k in node})
     try:
         env = WalkEnvConfig.from_dict(data.get("env", {}), str(path)) if "env" in data else \
@@ -136,6 +149,7 @@ def parse_training_config(data: Any, path: Path) -> TrainingConfig:
             weights[name] = r.number(f"rewards.{name}")
     return TrainingConfig(path=path, seed=r.number("train.seed"), iterations=r.number("train.iterations"),
                           checkpoint_every=r.number("train.checkpoint_every"),
+                          snapshot_every=r.number("train.snapshot_every") if "snapshot_every" in train else 0,
                           action_scale=r.number("train.action_scale"),
                           reward_scale=r.number("train.reward_scale") if "reward_scale" in train else 1.0,
                           warm_start=warm, env=env,
