@@ -39,6 +39,8 @@ CASES = [
     (bruce_eval, ["transfer", "--gap", "nope", "--out", "out"], "unknown reality-gap profile 'nope'"),
     (bruce_eval, ["transfer", "--out", "out", "--seeds", "a"], "--seeds: expected comma-separated numbers"),
     (bruce_eval, ["transfer"], "the following arguments are required: --out"),
+    (bruce_eval, ["transfer", "--out", "out", "--set", "policy.model=nope.onnx"],
+     "nope.onnx: policy file not found"),
     (bruce_eval, ["dynamics", "--data", "nope.npz", "--model", "pinn=x.pt", "--out", "out"],
      "nope.npz: dataset file not found"),
     (bruce_train_policy, ["--out", "run", "--config", "nope.yaml"], "nope.yaml: training config file not found"),

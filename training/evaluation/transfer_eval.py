@@ -853,7 +853,10 @@ def settings_from_args(args) -> TransferSettings:
                                     f"{', '.join(TRANSFER_SCHEMES)} and MODEL one of {', '.join(REFERENCE_MODELS)}")
     overrides = tuple(getattr(args, "overrides", None) or ())
     if overrides:
-        load_config(args.config or DEFAULT_CONFIG, list(overrides))  # a bad --set fails here, naming the key
+        overridden = load_config(args.config or DEFAULT_CONFIG, list(overrides))  # a bad --set fails here
+        policy = overridden.models.policy
+        if policy is not None and not Path(policy).is_file():  # before the worker processes, which would raise
+            raise TransferError(f"--set policy.model: {policy}: policy file not found")
     profiles = profiles_from_args(args)
     return TransferSettings(gap=profiles[0][1], gap_name=profiles[0][0], profiles=profiles, lookahead=lookahead,
                             seeds=seeds, schemes=schemes, overrides=overrides,
