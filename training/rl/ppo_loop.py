@@ -5,7 +5,7 @@ identical `--resume` needs the environment's state and the random generators in 
 only the networks and the optimizer), and because `bruce-train-policy` shows a progress bar and logs the reward
 terms instead of the runner's per-iteration text blocks.
 
-An optional anchor keeps the actor near a reference policy (the warm start's clone): every PPO optimizer step also
+An optional anchor keeps the actor near its warm start (transferred or cloned): every PPO optimizer step also
 descends `anchor_weight` x the mean squared distance between the actor's mean and the anchor's (network units) on a
 mini-batch of the iteration's observations — kickstarting (Schmitt et al. 2018, "Kickstarting Deep Reinforcement
 Learning") with a constant weight. rsl-rl's `PPO.update` takes no extra loss term, so the anchor's gradient joins
@@ -59,7 +59,7 @@ class PolicyTrainer:
         self.anchor: torch.nn.Module | None = None
         self.anchor_weight = 0.0
         self._anchor_hook = None
-        self._anchor_batches: list[torch.Tensor] = []
+        self._anchor_batches: list[tuple[torch.Tensor, torch.Tensor]] = []
         self._anchor_losses: list[float] = []
 
     def set_anchor(self, weight: float) -> None:
@@ -119,11 +119,12 @@ class PolicyTrainer:
     def _batches_for_the_anchor(self, obs: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """One observation mini-batch with the anchor's means for each of PPO's optimizer steps this update."""
         algorithm = self.cfg["algorithm"]
-        steps = int(algorithm.get("num_learning_epochs", 1)) * int(algorithm.get("num_mini_batches", 1))
+        epochs = int(algorithm.get("num_learning_epochs", 1))
         with torch.no_grad():
             target = self.anchor(obs)
-        order = torch.cat([torch.randperm(len(obs)) for _ in range(int(algorithm.get("num_learning_epochs", 1)))])
-        return [(obs[idx], target[idx]) for idx in order.chunk(steps)][::-1]
+        order = torch.cat([torch.randperm(len(obs)) for _ in range(epochs)])
+        batches = order.chunk(epochs * int(algorithm.get("num_mini_batches", 1)))
+        return [(obs[idx], target[idx]) for idx in batches][::-1]
 
     def _add_anchor_gradient(self, optimizer, args, kwargs) -> None:
         """Before each of PPO's optimizer steps: add the anchor loss's gradient to the actor's."""
