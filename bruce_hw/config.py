@@ -135,6 +135,8 @@ class ModelsConfig:
     # The PINN's mean one-step velocity error on the simulator itself (predicted minus simulated qd, rad/s, per
     # joint; None: not measured), which the residual observer takes off (runtime/transfer_schemes.py).
     pinn_residual_bias: np.ndarray | None = None
+    # The policy's observation/action spec (runtime/policy_spec.py); None: its sidecar's, else Table I.
+    policy_spec: Path | None = None
 
 
 TRANSFER_SCHEMES = ("direct", "pinn", "eq9", "shadow", "observer", "twin", "shadow_twin")  # runtime/transfer_schemes.py
@@ -522,14 +524,15 @@ def _gait_cadence(r: YamlReader) -> tuple[tuple[float, float], ...]:
 
 
 def _models(r: YamlReader, joints: tuple[str, ...]) -> ModelsConfig:
-    r.mapping("policy", {"model", "gait_period_s"})
+    policy = r.mapping("policy", {"model", "gait_period_s", "spec"})
     pinn = r.mapping("pinn", {"model", "lookahead_ticks", "residual_bias"})
     return ModelsConfig(policy=_model_file(r, "policy.model"),
                         gait_period_s=_gait_cadence(r),
                         pinn=_model_file(r, "pinn.model"),
                         pinn_lookahead_ticks=r.number("pinn.lookahead_ticks") if "lookahead_ticks" in pinn else 0,
                         pinn_residual_bias=r.per_joint("pinn.residual_bias", joints) if "residual_bias" in pinn
-                        else None)
+                        else None,
+                        policy_spec=_model_file(r, "policy.spec") if "spec" in policy else None)
 
 
 # The transfer section's numbers are its BOUNDS entries: "transfer.NAME" is TransferConfig.NAME and

@@ -91,7 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seconds of control to run (default: the scenario's length with --scenario, else until "
                         "Ctrl-C)")
     p.add_argument("--realtime", action="store_true",
-                   help="pace the loop to the wall clock (default for the mock: as fast as possible)")
+                   help="pace the loop to the wall clock (default for the mock: as fast as possible, but paced "
+                        "with --rerun web)")
     p.add_argument("--transfer", choices=TRANSFERS, default=None,
                    help="direct: Eq. 8 torques alone; pinn or eq9: the paper's Eq. 9, tracking the PINN's prediction; "
                         "shadow: a PD towards the reference model's shadow of the simulator; observer: a slow "
@@ -103,6 +104,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--policy", type=Path, default=None, metavar="PATH",
                    help="ONNX walking policy (obs -> action) for --controller policy; default: policy.model in "
                         "the config, else the standing controller")
+    p.add_argument("--policy-spec", type=Path, default=None, metavar="SPEC",
+                   help="the policy's observation/action spec: a YAML path or a shipped name (table1, legged_gym; "
+                        "docs/byo_policy.md); default: policy.spec in the config, else the policy's sidecar's, else "
+                        "table1")
     p.add_argument("--estimator", choices=ESTIMATORS, default=None,
                    help="the base state the controller sees: truth: the simulator's (mock only); kinematic: IMU + "
                         "leg kinematics + contacts (default: truth on the mock, kinematic otherwise)")
@@ -126,6 +131,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help=SINK_HELP + " (default: spawn with a display, off when headless)")
     p.add_argument("--stats", type=Path, default=None, metavar="PATH",
                    help="write a JSON summary here on every exit path")
+    p.add_argument("--record", type=Path, default=None, metavar="DIR",
+                   help="log every tick (q, qd, tau, IMU, contacts, command, targets, ...) into a new directory, "
+                        "for `bruce-eval replay --log DIR` (docs/replay.md)")
+    p.add_argument("--record-max-s", type=positive_seconds, default=None, metavar="S",
+                   help="stop recording after S s of ticks; the run goes on (default: 3600)")
     return p
 
 
@@ -153,6 +163,8 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
     from bruce_hw.reality_gap import GapError, load_gap
     from runtime.commands import CommandSchedule
     from runtime.inference import ModelError
+    from runtime.policy_spec import policy_spec_for, spec_file
+    from runtime.recorder import RecordError
     from runtime.run import RunSummary, exit_code_of, run_session, write_stats
     from runtime.telemetry import TelemetryError, parse_sink
 
@@ -160,6 +172,10 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
     args = parser.parse_args(join_option_values(sys.argv[1:] if argv is None else list(argv)))
     if args.policy is not None and args.controller != "policy":
         parser.error(f"--policy is for --controller policy, not {args.controller}")
+    if args.policy_spec is not None and args.controller != "policy":
+        parser.error(f"--policy-spec is for --controller policy, not {args.controller}")
+    if args.record_max_s is not None and args.record is None:
+        parser.error("--record-max-s is for --record DIR")
     if args.backend != "mock":
         for flag, value in (("--gap", args.gap), ("--gap-seed", args.gap_seed)):
             if value is not None:
@@ -182,6 +198,11 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
     try:
         stop.arm()  # a signal from here on (or one that came while the modules loaded) stops start-up at once
         config = load_config(args.config, args.overrides)
+        if args.policy_spec is not None:
+            config = replace(config, models=replace(config.models, policy_spec=spec_file(args.policy_spec)))
+        policy_path = args.policy or config.models.policy
+        if args.controller == "policy" and policy_path is not None:
+            policy_spec_for(config, policy_path)  # a bad spec is one line here, before the session starts
         commands = CommandSchedule.from_yaml(args.scenario) if args.scenario is not None else args.cmd
         transfer = args.transfer or config.transfer.scheme
         if args.pinn is not None and (transfer == "direct" or config.transfer.reference_model != "pinn"):
@@ -199,18 +220,39 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
         return refused(ExitCode.BAD_INPUT, str(exc), f"{type(exc).__name__}: {exc}")
     except StopRequested as exc:
         return refused(ExitCode.OK, f"{exc} {NOTHING_ENABLED}", None)
-    realtime = args.realtime or args.backend == "hw"  # a robot is always paced
+    # A robot is always paced; so is a run watched in a browser, which would otherwise be over before the page opens.
+    realtime = args.realtime or args.backend == "hw" or sink.kind == "web"
     duration = args.duration
     if duration is None and args.scenario is not None:
         duration = commands.duration
+    recorder = failure = None
     try:
+        if args.record is not None:
+            recorder = _recorder(args, config, transfer, options.get("gap"), commands)
         summary = run_session(backend, config, duration=duration, realtime=realtime, stats_path=args.stats,
                               transfer=transfer, policy=args.policy, pinn=args.pinn,
                               rerun=None if sink.kind == "off" else sink, controller_kind=args.controller,
-                              estimator=args.estimator, commands=commands, stop=stop)
+                              estimator=args.estimator, commands=commands, stop=stop,
+                              observers=[recorder] if recorder is not None else [])
+    except RecordError as exc:
+        return refused(ExitCode.BAD_INPUT, str(exc), f"{type(exc).__name__}: {exc}")
     except (BackendError, ModelError, TelemetryError, ValueError) as exc:  # the session's summary has named it
+        failure = exc
         return exit_code_of(exc)
+    finally:  # every exit path, Ctrl-C and safety trips included, closes the log
+        if recorder is not None:
+            recorder.close(failure or sys.exc_info()[1])  # the latter: an error that propagates
     return summary.exit_code
+
+
+def _recorder(args, config, transfer: str, gap, commands):
+    """`--record DIR`: the run's log (runtime.recorder); RecordError for a path that cannot take one."""
+    from runtime.recorder import DEFAULT_MAX_S, RunRecorder, describe_run
+
+    run = describe_run(config, backend=args.backend, controller=args.controller, policy=args.policy,
+                       transfer=transfer, pinn=args.pinn, estimator=args.estimator, overrides=args.overrides,
+                       gap=gap, commands=commands, scenario=args.scenario)
+    return RunRecorder(args.record, config, run, max_s=args.record_max_s or DEFAULT_MAX_S)
 
 
 if __name__ == "__main__":

@@ -7,7 +7,8 @@ from pathlib import Path
 
 from bruce_hw.config import RobotConfig
 from runtime.inference import OnnxPolicy
-from runtime.policy import ObservationBuilder, PolicyController
+from runtime.policy import PolicyController
+from runtime.policy_spec import policy_spec_for
 from runtime.standing import StandingController
 
 CONTROLLERS = ("policy", "teacher", "standing")
@@ -15,7 +16,8 @@ CONTROLLERS = ("policy", "teacher", "standing")
 
 def build_controller(config: RobotConfig, policy_path: Path | None, kind: str = "policy"):
     """The nominal controller and its name. `policy`: the ONNX policy given (or configured), else the standing
-    controller; `teacher`: the model-based walking controller; `standing`: the standing controller."""
+    controller; `teacher`: the model-based walking controller; `standing`: the standing controller. A policy runs
+    with its spec (`runtime.policy_spec.policy_spec_for`), and its ONNX sizes are checked against the spec's."""
     if kind not in CONTROLLERS:
         raise ValueError(f"unknown controller {kind!r} (expected one of {', '.join(CONTROLLERS)})")
     if policy_path is not None and kind != "policy":
@@ -27,6 +29,10 @@ def build_controller(config: RobotConfig, policy_path: Path | None, kind: str = 
     path = (policy_path or config.models.policy) if kind == "policy" else None
     if path is None:
         return StandingController(config), "standing controller"
-    policy = OnnxPolicy(path, ObservationBuilder(config).size, config.n_joints)
+    spec = policy_spec_for(config, path)
+    n = len(spec.joints)
+    policy = OnnxPolicy(path, spec.obs_size, n, names=(spec.input_name, spec.output_name),
+                        sized_by=(f"spec {spec.name} builds {spec.obs_size} values ({spec.layout_text()})",
+                                  f"spec {spec.name} maps {n} joints"))
     policy.warmup()
-    return PolicyController(config, policy), f"policy {path}"
+    return PolicyController(config, policy, spec), f"policy {path} (spec {spec.name}, {spec.rate_hz} Hz)"

@@ -106,15 +106,26 @@ class _Bound:
 
 
 class OnnxPolicy:
-    """The walking policy: `obs` [1, obs_dim] -> `action` [1, n_joints] (joint targets a_t, rad)."""
+    """The walking policy: `obs` [1, obs_dim] -> `action` [1, n_joints] (joint targets a_t, rad, or what a policy
+    spec maps to them); `names`: the two tensors' names when a policy spec gives others."""
 
-    def __init__(self, path: str | Path, obs_dim: int, n_joints: int):
+    def __init__(self, path: str | Path, obs_dim: int, n_joints: int, names: tuple[str, str] = ("obs", "action"),
+                 sized_by: tuple[str, str] | None = None):
+        """`sized_by`: what sets each size (e.g. "spec X builds 44 values (...)"), for an error that names both."""
         self.path = Path(path)
         self.session = open_session(self.path, "policy")
-        check_signature(self.session, self.path, "policy", {"obs": (1, obs_dim)}, {"action": (1, n_joints)})
+        obs_name, action_name = names
+        if sized_by is not None:  # a size that differs is named with what set it; names and types are checked next
+            sides = (("takes", self.session.get_inputs(), obs_name, obs_dim, sized_by[0]),
+                     ("gives", self.session.get_outputs(), action_name, n_joints, sized_by[1]))
+            for verb, tensors, name, size, why in sides:
+                dims = next((tuple(t.shape) for t in tensors if t.name == name), (1, size))
+                if all(isinstance(d, int) for d in dims) and dims != (1, size):
+                    raise ModelError(f"policy model {self.path} {verb} {name} {_shape_text(dims)} but {why}")
+        check_signature(self.session, self.path, "policy", {obs_name: (1, obs_dim)}, {action_name: (1, n_joints)})
         self.obs = np.zeros((1, obs_dim), np.float32)
         self.action = np.zeros((1, n_joints), np.float32)
-        self._bound = _Bound(self.session, {"obs": self.obs, "action": self.action})
+        self._bound = _Bound(self.session, {obs_name: self.obs, action_name: self.action})
 
     def warmup(self, calls: int = WARMUP_CALLS) -> None:
         for _ in range(calls):

@@ -34,7 +34,7 @@ class TickView:
     """One tick as the observers see it (refilled by the loop every tick)."""
 
     __slots__ = ("backend", "tick", "now", "clock0", "robot", "q", "qd", "command", "a", "tau_star", "tau",
-                 "_truth")
+                 "scheme", "safety", "gap", "_truth")
 
     def __init__(self, backend: Backend, clock0: float):
         self.backend = backend
@@ -47,6 +47,9 @@ class TickView:
         self.a = None                        # the controller's targets in force
         self.tau_star = None                 # Eq. 8 on them
         self.tau = None                      # what was written (the safety stage's output)
+        # The loop's stages, set once before the first tick (None outside the loop): the transfer scheme (q_hat,
+        # qd_hat), the safety stage (state) and the gap monitor (last residual; None without a reference model).
+        self.scheme = self.safety = self.gap = None
         self._truth: GroundTruth | None = None
 
     def fill(self, tick: int, now: float, robot: RobotState, command: np.ndarray, a: np.ndarray,

@@ -20,6 +20,7 @@ from __future__ import annotations
 import gc
 import json
 import logging
+import math
 import queue
 import sys
 import threading
@@ -406,6 +407,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     events_sent = 0
     clock0 = backend.clock()
     view = TickView(backend, clock0)
+    view.scheme, view.safety, view.gap = scheme, safety, gap
     for observer in observers:
         observer.on_start(backend, config)
     perf = time.perf_counter_ns
@@ -474,7 +476,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
             if telemetry is not None:
                 elapsed = now - clock0
                 telemetry.append(tick, elapsed, q, qd, scheme.q_hat, scheme.qd_hat, a, tau_star, tau,
-                                 (t0 - previous_start) / 1e3, (t7 - t0) / 1e3, int(safety.state),
+                                 (t0 - previous_start) / 1e3 if tick else math.nan, (t7 - t0) / 1e3, int(safety.state),
                                  None if residual is None else (residual.qd, residual.q, gap.window_rms))
                 if poses and tick % pose_every == 0:
                     telemetry.append_pose(tick, elapsed, *backend.body_poses())

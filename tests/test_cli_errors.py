@@ -12,6 +12,7 @@ from training.collect import main as bruce_collect
 from training.dynamics.export import main as bruce_export
 from training.dynamics.train import main as bruce_train
 from training.evaluation.cli import main as bruce_eval
+from training.import_cli import main as bruce_import_data
 from training.rl.train_cli import main as bruce_train_policy
 
 CASES = [
@@ -41,6 +42,7 @@ CASES = [
     (bruce_eval, ["transfer"], "the following arguments are required: --out"),
     (bruce_eval, ["transfer", "--out", "out", "--set", "policy.model=nope.onnx"],
      "nope.onnx: policy file not found"),
+    (bruce_eval, ["transfer", "--out", "out", "--set", "policy.spec=nope.yaml"], "nope.yaml"),
     (bruce_eval, ["dynamics", "--data", "nope.npz", "--model", "pinn=x.pt", "--out", "out"],
      "nope.npz: dataset file not found"),
     (bruce_train_policy, ["--out", "run", "--config", "nope.yaml"], "nope.yaml: training config file not found"),
@@ -51,6 +53,9 @@ CASES = [
      "nope.onnx: --warm-start policy file not found"),
     (bruce_train_policy, ["--out", "run", "--resume"], "--resume: no checkpoint to continue from"),
     (bruce_train_policy, [], "the following arguments are required: --out"),
+    (bruce_import_data, ["nope.csv", "--out", "x.npz"], "nope.csv"),
+    (bruce_import_data, ["nope.csv"], "the following arguments are required: --out"),
+    (bruce_train, ["--data", "nope.csv", "--model", "pinn", "--out", "x.pt"], "nope.csv"),
 ]
 
 

@@ -34,8 +34,9 @@ from runtime.controllers import build_controller
 from runtime.falls import fall_rule
 from runtime.inference import ModelError
 from runtime.observers import FallStop, TickObserver, TickView
+from runtime.recorder import file_sha256
 from runtime.run import run_session
-from training.dataset import Dataset, DatasetError, config_hash, file_sha256, save_dataset
+from training.dataset import Dataset, DatasetError, config_hash, save_dataset
 
 SAMPLE_BOX = {"vx": (-0.5, 1.0), "vy": (-0.5, 0.5), "wz": (-0.5, 0.5)}   # the paper's §IV-B command box
 # What the committed policy supports: the ranges it was distilled on (training.distill.DistillSettings; the test

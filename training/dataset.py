@@ -279,15 +279,6 @@ def windows(dataset: Dataset, length: int, stride: int | None = None, offset: in
 
 
 # -- the file -------------------------------------------------------------------------------------------------
-def file_sha256(path: str | Path) -> str:
-    """SHA-256 of a file's bytes, read in blocks (datasets, checkpoints and models are recorded by it)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def save_dataset(path: str | Path, dataset: Dataset) -> Path:
     """Write `dataset` in the documented format (docs/dynamics.md), atomically: a crash leaves no half file."""
     path = Path(path)

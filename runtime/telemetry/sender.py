@@ -43,6 +43,8 @@ from runtime.telemetry.ring import (
 from runtime.telemetry.sink import (
     TelemetryError,
     part_path,
+    web_origins,
+    web_viewer_link,
 )
 
 if TYPE_CHECKING:
@@ -63,8 +65,10 @@ QUANTITIES = {  # the blueprint's per-joint plots: which of JOINT_SERIES each sh
     "velocity": [name in ("qd", "qd_hat") for name in JOINT_SERIES],
     "torque": [name in ("tau_star", "tau") for name in JOINT_SERIES],
 }
+TAB_NAMES = {"position": "positions", "velocity": "velocities", "torque": "torques"}
 LOOP_SERIES = {"loop/period_us": "period", "loop/work_us": "work"}  # every row
 STEP_SERIES = {"safety/state": "safety code", "telemetry/dropped": "dropped rows"}  # rows where they change
+LIVE_WINDOW_S = 10.0  # live sinks: the plots show this many trailing seconds (a browser redraws every frame)
 FLOOR_HALF_SIZE_M = 2.0  # MuJoCo planes of size 0 are infinite; show this much of them
 TRAJECTORY_RADIUS_M = 0.003
 
@@ -189,6 +193,19 @@ class _EntityColumns:
         return self._pa.RecordBatch.from_arrays(columns, schema=self.schema)
 
 
+def decimated(rows: np.ndarray, every: int) -> np.ndarray:
+    """One row per `every` ticks (the last of each interval of ticks // every) with the interval's largest
+    period_us and work_us, so a single late tick still shows. An interval split between two sends gives a row in
+    each."""
+    if every <= 1 or not len(rows):
+        return rows
+    intervals = rows[:, 0].astype(np.int64) // every
+    last = np.flatnonzero(np.r_[intervals[1:] != intervals[:-1], True])
+    out = rows[last]
+    out[:, -3:-1] = np.fmax.reduceat(rows[:, -3:-1], np.r_[0, last[:-1] + 1], axis=0)  # fmax: tick 0's NaN period
+    return out
+
+
 def _time_columns(rr, ticks, times) -> list:
     return [rr.TimeColumn("tick", sequence=np.asarray(ticks, dtype=np.int64)),
             rr.TimeColumn("time", duration=np.asarray(times, dtype=np.float64))]
@@ -262,6 +279,16 @@ class _Sender:
         elif kind == "serve":
             self.url = recording.serve_grpc(grpc_port=int(target),
                                             server_memory_limit=f"{self.spec['buffer_mb']}MB")
+        elif kind == "web":
+            import rerun as rr
+
+            # Both servers listen on all interfaces. The page comes from web_port under whatever name the browser
+            # used, so that origin must be allowed to read the stream (rerun allows localhost and rerun.io only).
+            web_port, grpc_port = self.spec["web_port"], self.spec["grpc_port"]
+            local = recording.serve_grpc(grpc_port=grpc_port, server_memory_limit=f"{self.spec['buffer_mb']}MB",
+                                         cors_allow_origin=web_origins(web_port))
+            rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=local)
+            self.url = web_viewer_link(target, web_port, grpc_port)  # target: the host for the link
         elif kind == "spawn":
             recording.spawn()  # may wait up to ~10 s for the viewer to come up
         else:
@@ -271,15 +298,24 @@ class _Sender:
         import rerun as rr
         import rerun.blueprint as rrb
 
+        # Live, every plot shows the trailing LIVE_WINDOW_S: readable while it scrolls, and a browser redraws a
+        # bounded number of points per frame however long the run. A recording shows all of it.
+        window = {}
+        if self.spec["kind"] != "save":
+            window = {"time_ranges": [rrb.VisibleTimeRange(
+                "time", start=rrb.TimeRangeBoundary.cursor_relative(seconds=-LIVE_WINDOW_S),
+                end=rrb.TimeRangeBoundary.cursor_relative())]}
+
         def per_joint(quantity: str):
             visible = rr.SeriesLines(visible_series=QUANTITIES[quantity])
             views = [rrb.TimeSeriesView(origin=f"joints/{name}", name=f"{name} {quantity}",
-                                        overrides={f"joints/{name}": visible}) for name in self.joints]
-            return rrb.Grid(*views, grid_columns=max(1, math.ceil(len(views) / 2)), name=f"{quantity}s")
+                                        overrides={f"joints/{name}": visible}, **window) for name in self.joints]
+            return rrb.Grid(*views, grid_columns=max(1, math.ceil(len(views) / 2)), name=TAB_NAMES[quantity])
 
         loop = rrb.Vertical(
-            rrb.TimeSeriesView(origin="loop", name="loop timing (µs)"),
-            rrb.TimeSeriesView(origin="/", contents=["safety/state", "telemetry/dropped"], name="safety / drops"),
+            rrb.TimeSeriesView(origin="loop", name="loop timing (µs)", **window),
+            rrb.TimeSeriesView(origin="/", contents=["safety/state", "telemetry/dropped"], name="safety / drops",
+                               **window),
             rrb.TextLogView(origin="safety/events", name="safety events"),
         )
         overview = loop
@@ -289,13 +325,15 @@ class _Sender:
                                          end=rrb.TimeRangeBoundary.cursor_relative()) for timeline in ("tick", "time")]
             overview = rrb.Horizontal(rrb.Spatial3DView(origin="world", name="robot", time_ranges=past), loop,
                                       column_shares=[3, 2])
-        tabs = [rrb.Vertical(overview, name="robot"), per_joint("position"), per_joint("velocity"),
-                per_joint("torque")]
+        tabs = [rrb.Vertical(overview, name="robot"), per_joint("position"), per_joint("torque"),
+                per_joint("velocity")]
         if self.spec["gap"]:
-            views = [rrb.TimeSeriesView(origin=f"gap/{name}", name=f"{name} gap (rad/s, rad)") for name in self.joints]
+            views = [rrb.TimeSeriesView(origin=f"gap/{name}", name=f"{name} gap (rad/s, rad)", **window)
+                     for name in self.joints]
             tabs.append(rrb.Grid(*views, grid_columns=max(1, math.ceil(len(views) / 2)), name="gap"))
-        tabs = rrb.Tabs(*tabs)
-        return rrb.Blueprint(tabs, rrb.TimePanel(timeline="time"))
+        # The side panels start collapsed (a click opens them): in a laptop's browser window the views need the room.
+        return rrb.Blueprint(rrb.Tabs(*tabs), rrb.BlueprintPanel(state="collapsed"),
+                             rrb.SelectionPanel(state="collapsed"), rrb.TimePanel(timeline="time", state="collapsed"))
 
     def _log_static(self, rr) -> None:
         log = self.recording.log
@@ -480,7 +518,8 @@ class _Sender:
         print(f"telemetry: recording continues in {path}" + (f" (keeping the newest {keep} parts)" if keep else ""),
               file=sys.stderr, flush=True)
 
-    def _send_rows(self, rows: np.ndarray) -> None:
+    def _send_rows(self, all_rows: np.ndarray) -> None:
+        rows = decimated(all_rows, self.spec["row_decimation"])  # tick 0's period is NaN: it has no previous tick
         n, n_joints = len(rows), len(self.joints)
         blocks = rows[:, 2:2 + ROW_BLOCKS * n_joints].reshape(n, ROW_BLOCKS, n_joints)
         per_joint = blocks[:, ROW_ORDER].transpose(0, 2, 1)  # (row, joint, series in JOINT_SERIES order)
@@ -497,9 +536,12 @@ class _Sender:
             columns = out.index_arrays(ticks, rows[:, 1])
             columns += [out.scalar_lists(gap[:, j]) for j in range(n_joints)]
             self.recording.send_record_batch(out.batch(columns))
+        self._send_steps(all_rows)
 
-        # The safety code and the drop count change rarely: a row where either changes, the row before it (so
-        # the plot steps instead of ramping) and the chunk's first and last rows.
+    def _send_steps(self, rows: np.ndarray) -> None:
+        """The safety code and the drop count change rarely: a row where either changes, the row before it (so
+        the plot steps instead of ramping) and the chunk's first and last rows."""
+        n, ticks = len(rows), rows[:, 0].astype(np.int64)
         stats = self.stats
         dropped = int(self.ctrl[ROWS_REJECTED] + stats[ROWS_OVERRUN] + stats[ROWS_FAILED])
         step = np.column_stack((rows[:, -1], np.full(n, float(dropped))))

@@ -50,11 +50,15 @@ from runtime.telemetry.sink import (
     DEFAULT_GRPC_PORT,
     DEFAULT_MAX_MB,
     DEFAULT_VIEWER_URL,
+    WEB_BUFFER_MB,
+    WEB_ROW_HZ,
     RerunSink,
     TelemetryError,
+    check_port_free,
     grpc_url,
     part_path,
     probe_viewer,
+    viewer_host,
 )
 
 if TYPE_CHECKING:
@@ -64,7 +68,7 @@ if TYPE_CHECKING:
 
 POSE_HZ = 30.0              # 3-D poses (and the base trajectory's points): display rate, not loop rate
 FILE_CHUNK_S = 2.0          # save=: each entity's rows go out in chunks of this many seconds
-LIVE_CHUNK_S = 0.2          # spawn/connect/serve: the viewer's latency (rerun's own batching default)
+LIVE_CHUNK_S = 0.2          # spawn/connect/serve/web: the viewer's latency (rerun's own batching default)
 START_TIMEOUT_S = 60.0      # a new interpreter importing rerun (~1 s), plus up to ~10 s for a spawned viewer
 CLOSE_TIMEOUT_S = 30.0      # a child stuck in rerun (blocked channel) is killed after this long
 EXIT_TIMEOUT_S = 5.0        # after its last message, for the child's interpreter to exit
@@ -112,10 +116,13 @@ class Telemetry:
         self.batch_period_s = batch_period_s
         self.chunk_s = chunk_s
         self.pose_decimation = pose_decimation  # the loop calls append_pose every this many ticks
+        # web: a browser's viewer gets one row per this many ticks (loop timing: each interval's maximum)
+        row_hz = (sink.row_hz or WEB_ROW_HZ) if sink.kind == "web" else config.loop_hz
+        self.row_decimation = max(1, round(config.loop_hz / row_hz))
         self.recording_name = recording_name
         self.gap = gap  # rows carry the gap monitor's residuals (append's `gap`), sent under gap/<joint>
         self.joints = tuple(config.joints)
-        self.url: str | None = None  # serve: the URL the gRPC server reported
+        self.url: str | None = None  # serve: the URL the gRPC server reported; web: the page to open
         self._error: BaseException | None = None
         self._geometry = None if model is None else _geometry(model)
         self._pose_capacity = max(8, capacity // pose_decimation)
@@ -134,6 +141,7 @@ class Telemetry:
         self._proc: subprocess.Popen | None = None
         self._conn: Connection | None = None
         self._started = self._closed = False
+        self._ready = False  # the child opened the sink
 
     def _bind(self, buffer) -> None:
         views = self._layout.views(buffer)
@@ -273,6 +281,10 @@ class Telemetry:
             port = self.sink.target or DEFAULT_GRPC_PORT
             print(f"telemetry: rerun gRPC server on port {port} (all interfaces); view it from another machine with"
                   f": rerun rerun+http://{socket.gethostname()}:{port}/proxy  (locally: rerun {self.url})", flush=True)
+        elif self.sink.kind == "web":
+            print(f"telemetry: rerun web viewer on port {self.sink.web_port}, its gRPC stream on port "
+                  f"{self.sink.server_port} (all interfaces); open in a browser: {self.url}  (on this machine "
+                  "127.0.0.1 works as the host in both places; ,host=NAME picks another)", flush=True)
 
     def close(self) -> None:
         """Stop the telemetry process after it has sent everything buffered, flushed and disconnected (waits up
@@ -285,7 +297,7 @@ class Telemetry:
         sent_rows, sent_poses = int(self._stats[ROWS_SENT]), int(self._stats[POSES_SENT])
         self._final = (sent_rows, self._n_rows + self._rejected_rows - sent_rows,
                        sent_poses, self._n_poses + self._rejected_poses - sent_poses)
-        if self.sink.kind == "save" and self._started:
+        if self.sink.kind == "save" and self._ready:
             print(f"telemetry: {self.saved_text()}", flush=True)
 
     def saved_text(self) -> str:
@@ -296,7 +308,7 @@ class Telemetry:
             parts += 1
         more = f" and {parts - 1} continuation part(s) {part_path(path, 1).name} .. " \
                f"{part_path(path, parts - 1).name}" if parts > 1 else ""
-        return f"rerun recording saved to {path}{more} (view: rerun {path})"
+        return f"rerun recording saved to {path}{more} (view: bruce-view {path}, in a browser: add --web)"
 
     def __enter__(self) -> Self:
         try:
@@ -328,13 +340,13 @@ class Telemetry:
             probe_viewer(self.sink, url or DEFAULT_VIEWER_URL)  # rerun would wait 5 s, then drop everything
             return url
         if kind == "serve":
-            port = int(target) if target else DEFAULT_GRPC_PORT
-            with socket.socket() as probe:  # rerun only logs a failed bind; find out here, with a clear error
-                try:
-                    probe.bind(("0.0.0.0", port))
-                except OSError as exc:
-                    raise TelemetryError(f"rerun sink {self.sink}: cannot listen on port {port}: {exc}") from exc
+            port = self.sink.server_port  # rerun only logs a failed bind; find out here, with a clear error
+            check_port_free(port, "the gRPC server", f"rerun sink {self.sink}")
             return str(port)
+        if kind == "web":
+            check_port_free(self.sink.server_port, "the gRPC server", f"rerun sink {self.sink}")
+            check_port_free(self.sink.web_port, "the web viewer", f"rerun sink {self.sink}")
+            return self.sink.host or viewer_host()  # the host in the link to open
         if kind == "spawn":
             headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
             if sys.platform.startswith("linux") and headless:
@@ -367,8 +379,11 @@ class Telemetry:
                 "gap": self.gap,
                 "target": target, "sink": str(self.sink), "recording_name": self.recording_name,
                 "batch_period_s": self.batch_period_s, "chunk_s": self.chunk_s, "parent": os.getpid(),
+                "row_decimation": self.row_decimation,
                 "max_mb": DEFAULT_MAX_MB if self.sink.max_mb is None else self.sink.max_mb, "keep": self.sink.keep,
-                "buffer_mb": DEFAULT_BUFFER_MB if self.sink.buffer_mb is None else self.sink.buffer_mb})
+                "buffer_mb": self.sink.buffer_mb or (WEB_BUFFER_MB if self.sink.kind == "web" else DEFAULT_BUFFER_MB),
+                **({"web_port": self.sink.web_port, "grpc_port": self.sink.server_port}
+                   if self.sink.kind == "web" else {})})
             reply = self._receive(START_TIMEOUT_S, until=("ready", "failed"))
         finally:
             with contextlib.suppress(FileNotFoundError):
@@ -381,6 +396,7 @@ class Telemetry:
         if reply[0] == "failed":
             raise TelemetryError(reply[1])
         self.url = reply[1]
+        self._ready = True
 
     def _receive(self, timeout: float, until: tuple[str, ...] = ()):
         """Handle the child's messages for up to `timeout` s; the first whose kind is in `until`, else None

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from training.dataset import file_sha256
+from runtime.recorder import file_sha256
 from training.dynamics.checkpoint import kind_of
 from training.dynamics.lstm_baseline import LstmStep
 from training.dynamics.pinn import PinnStep

@@ -1,7 +1,7 @@
 """`bruce-train`: train a dynamics model (the PINN or a baseline) on a `bruce-collect` dataset, the paper's way.
 
     bruce-train --data data/walk.npz --model pinn [--preset paper|small] [--seed 0] [--epochs E]
-                --out runs/pinn_s0.pt [--resume]
+                --out runs/pinn_s0.pt [--resume] [--resample] [--ignore-extra]
 
 Contiguous 80/20 split by time, statistics from the training part only; Eq. 7 with each term divided by the
 training spread of its one-step increment (`Eq7Loss`), teacher-forced; truncated BPTT on windows inside episodes,
@@ -29,18 +29,18 @@ from torch import nn
 from tqdm import tqdm
 
 from bruce_hw.config import ConfigError, load_config
+from runtime.recorder import file_sha256
 from training.dataset import (
     Dataset,
     DatasetError,
     DatasetStats,
     compute_stats,
-    file_sha256,
-    load_dataset,
     split_by_time,
     windows,
 )
 from training.dynamics.checkpoint import CheckpointError, build_model, read_checkpoint, save_checkpoint
 from training.dynamics.pinn import PinnStep, joint_stop_range
+from training.external_data import load_training_data
 
 
 @dataclass(frozen=True)
@@ -151,12 +151,16 @@ def make_optimizer(model: nn.Module, config: TrainConfig):
 
 def train(data_path: str | Path, kind: str, out: str | Path, *, model_config: dict | None = None,
           train_config: TrainConfig | None = None, robot_config=None, resume: bool = False,
-          progress: bool = True, command: str | None = None) -> dict:
+          progress: bool = True, command: str | None = None, resample: bool = False,
+          ignore_extra: bool = False) -> dict:
     """Train a `kind` model on `data_path` and write the checkpoint `out`; returns the final checkpoint dict.
-    `command` (the bruce-train line) is recorded in the checkpoint so an export can say how to regenerate it."""
+    `command` (the bruce-train line) is recorded in the checkpoint so an export can say how to regenerate it.
+    `data_path` may be another simulator's trajectory (docs/byo_data.md), converted in memory; `resample` and
+    `ignore_extra` are bruce-import-data's options for it."""
     config = train_config or TrainConfig()
     robot_config = robot_config or load_config()
-    data = load_dataset(data_path, robot_config)
+    data = load_training_data(data_path, robot_config, resample=resample, ignore_extra=ignore_extra,
+                              say=lambda line: print(f"bruce-train: {line}"))
     train_part, _ = split_by_time(data, config.train_fraction)
     stats = compute_stats(train_part)
     out = Path(out)
@@ -237,7 +241,8 @@ def _identify_analytic(train_part: Dataset, stats: DatasetStats, robot_config, o
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="bruce-train", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", required=True, help="dataset .npz (bruce-collect)")
+    parser.add_argument("--data", required=True, help="dataset .npz (bruce-collect, bruce-import-data), or another "
+                        "simulator's .csv/.npz trajectory, converted in memory (docs/byo_data.md)")
     parser.add_argument("--model", required=True, choices=("pinn", "lstm", "olnn", "analytic"),
                         help="analytic: identified by least squares, not trained (epochs do not apply)")
     parser.add_argument("--preset", choices=sorted(TRAIN_PRESETS), default="paper")
@@ -247,6 +252,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", required=True, help="checkpoint to write (.pt)")
     parser.add_argument("--resume", action="store_true", help="continue the interrupted run in --out")
     parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--resample", action="store_true",
+                        help="an external trajectory at another rate: resample it to rates.loop_hz")
+    parser.add_argument("--ignore-extra", action="store_true",
+                        help="an external trajectory: drop its joints that the config lacks")
     args = parser.parse_args(argv)
     settings = {**TRAIN_PRESETS[args.preset], "seed": args.seed}
     if args.epochs is not None:
@@ -254,7 +263,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         result = train(args.data, args.model, args.out, model_config=MODEL_PRESETS[args.preset][args.model],
                        train_config=TrainConfig(**settings), robot_config=load_config(args.config) if args.config
-                       else None, resume=args.resume, progress=not args.no_progress,
+                       else None, resume=args.resume, progress=not args.no_progress, resample=args.resample,
+                       ignore_extra=args.ignore_extra,
                        command=shlex.join(["bruce-train", *(sys.argv[1:] if argv is None else argv)]))
     except (DatasetError, CheckpointError, ConfigError) as exc:
         print(f"bruce-train: error: {exc}", file=sys.stderr)

@@ -1,6 +1,7 @@
 """`bruce-eval`: evaluate learned dynamics models (`dynamics`, `dynamics_eval.py`), rehearse their sim-to-real
 transfer (`transfer`, `transfer_eval.py`), run a walking controller on the command grid (`walking`,
-`walking_eval.py`) and set walking policies side by side under reality gaps (`policies`, `policy_table.py`).
+`walking_eval.py`), set walking policies side by side under reality gaps (`policies`, `policy_table.py`) and
+replay a recorded run against the simulator and the PINN (`replay`, `replay.py`).
 
 The parser lives here, apart from both, so that `bruce-eval transfer` (onnxruntime and MuJoCo only) runs on the base
 install: torch is imported only by the `dynamics` command.
@@ -12,7 +13,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from training.evaluation import policy_table, transfer_eval, walking_eval
+from training.evaluation import policy_table, replay, transfer_eval, walking_eval
 
 DYNAMICS_HELP = "Held-out NMSE (one-step and open-loop K-step) and per-step compute of dynamics models."
 
@@ -46,6 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     transfer_eval.add_parser(commands)
     walking_eval.add_parser(commands)
     policy_table.add_parser(commands)
+    replay.add_parser(commands)
     return parser
 
 
@@ -58,6 +60,8 @@ def main(argv: list[str] | None = None) -> int:
         return walking_eval.run_walking(args)
     if args.command == "policies":
         return policy_table.run_policies(args)
+    if args.command == "replay":
+        return replay.run_replay(args, argv)
     from training.evaluation.dynamics_eval import main_dynamics  # torch
 
     return main_dynamics(args, argv)

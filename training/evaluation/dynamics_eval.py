@@ -30,7 +30,8 @@ import torch
 from torch import nn
 
 from bruce_hw.config import ConfigError, RobotConfig
-from training.dataset import DatasetError, file_sha256, load_dataset, split_by_time
+from runtime.recorder import file_sha256
+from training.dataset import DatasetError, load_dataset, split_by_time
 from training.dynamics.checkpoint import MODEL_KINDS, CheckpointError, load_model_checkpoint
 from training.dynamics.export import rollout_parity
 from training.episodes import episode_runs, run_indices

@@ -29,6 +29,7 @@ from bruce_hw.quaternion import euler_of
 from bruce_hw.reality_gap import GapError, RealityGap, latency_ticks, load_gap
 from runtime.commands import CommandSchedule
 from runtime.observers import TRACKING_SKIP_S, TickObserver, heading_velocity
+from runtime.policy_spec import policy_spec_for
 from training.evaluation.report import json_safe
 from training.evaluation.transfer_acceptance import ONE_FACTOR_PROFILES, acceptance, latency_tolerance, recommended
 from training.evaluation.transfer_cache import RunCache, spec_key, trace
@@ -857,6 +858,8 @@ def settings_from_args(args) -> TransferSettings:
         policy = overridden.models.policy
         if policy is not None and not Path(policy).is_file():  # before the worker processes, which would raise
             raise TransferError(f"--set policy.model: {policy}: policy file not found")
+        if policy is not None:
+            policy_spec_for(overridden, Path(policy))  # a bad spec is one line here, not a worker's traceback
     profiles = profiles_from_args(args)
     return TransferSettings(gap=profiles[0][1], gap_name=profiles[0][0], profiles=profiles, lookahead=lookahead,
                             seeds=seeds, schemes=schemes, overrides=overrides,

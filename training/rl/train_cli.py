@@ -27,7 +27,7 @@ import torch
 import yaml
 
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
-from training.dataset import file_sha256
+from runtime.recorder import file_sha256
 from training.rl.train_config import DEFAULT_TRAINING_CONFIG, TrainingConfig, TrainingConfigError, load_training_config
 
 CHECKPOINT = "checkpoint.pt"
