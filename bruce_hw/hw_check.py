@@ -77,6 +77,7 @@ SENSE_MIN_RATE_HZ = 950.0
 SENSE_MAX_AGE_P99_S = 0.002
 RTT_REPLY_TIMEOUT_S = 0.05    # a slow reply is timed, not lost
 PRESENCE_TIMEOUT_S = 0.02     # the BEAR pings and reads: a device this late is as good as missing
+PRESENCE_TRIES = 3            # requests in a row a device must leave unanswered to be missing: one lost reply is not
 DXL_READ_ADDRESS, DXL_READ_LENGTH = 128, 8  # present velocity (128) and present position (132), 4 bytes each
 
 
@@ -114,7 +115,7 @@ class BusReport:
 def check_bear(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
     from drivers.bear import BearBus
     from drivers.bear_registers import FAULT_BITS, BearError
-    from drivers.errors import BusTimeout, DriverError
+    from drivers.errors import DriverError
 
     bus_cfg = config.buses.bear
     report = BusReport(f"BEAR bus {bus_cfg.port} ({bus_cfg.baud} baud, IDs {ids_text(bus_cfg.ids)})")
@@ -128,13 +129,12 @@ def check_bear(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
     enabled: list[int] = []
     with bus:
         for device_id in bus_cfg.ids:
-            try:
-                ping = bus.ping(device_id)
-                values = bus.read_status(device_id, BEAR_REGISTERS)
-            except BusTimeout:
+            answer = _bear_presence(bus, device_id)
+            if answer is None:
                 report.missing.append(device_id)
                 report.lines.append(f"ID {device_id}: MISSING")
                 continue
+            ping, values = answer
             flags = ", ".join(ping.flags) or "none"
             hottest = max(values[name] for name in BEAR_REGISTERS[1:4])
             report.lines.append(
@@ -169,6 +169,30 @@ def check_bear(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
     return report
 
 
+def _bear_presence(bus, device_id: int):
+    """(ping, status registers) of one BEAR, asked up to PRESENCE_TRIES times; None: it never answered."""
+    from drivers.errors import BusTimeout
+
+    for _ in range(PRESENCE_TRIES):
+        try:
+            return bus.ping(device_id), bus.read_status(device_id, BEAR_REGISTERS)
+        except BusTimeout:
+            continue
+    return None
+
+
+def _answered(request, *args):
+    """`request(*args)`'s (value, comm result, error) of dynamixel-sdk, asked up to PRESENCE_TRIES times until it
+    succeeds."""
+    from dynamixel_sdk import COMM_SUCCESS
+
+    for _ in range(PRESENCE_TRIES):
+        value, result, error = request(*args)
+        if result == COMM_SUCCESS:
+            break
+    return value, result, error
+
+
 def check_dynamixel(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
     from drivers.dynamixel import decode_hardware_error, decode_status_error
 
@@ -190,14 +214,14 @@ def check_dynamixel(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
         return report
     try:
         for dxl_id in bus_cfg.ids:
-            model, result, error = handler.ping(port, dxl_id)
+            model, result, error = _answered(handler.ping, port, dxl_id)
             if result != COMM_SUCCESS:
                 report.missing.append(dxl_id)
                 report.lines.append(f"ID {dxl_id}: MISSING")
                 continue
-            hardware, r1, _ = handler.read1ByteTxRx(port, dxl_id, DXL_HARDWARE_ERROR)
-            temperature, r2, _ = handler.read1ByteTxRx(port, dxl_id, DXL_TEMPERATURE)
-            voltage, r3, _ = handler.read2ByteTxRx(port, dxl_id, DXL_INPUT_VOLTAGE)
+            hardware, r1, _ = _answered(handler.read1ByteTxRx, port, dxl_id, DXL_HARDWARE_ERROR)
+            temperature, r2, _ = _answered(handler.read1ByteTxRx, port, dxl_id, DXL_TEMPERATURE)
+            voltage, r3, _ = _answered(handler.read2ByteTxRx, port, dxl_id, DXL_INPUT_VOLTAGE)
             if (r1, r2, r3) != (COMM_SUCCESS,) * 3:
                 report.missing.append(dxl_id)
                 report.lines.append(f"ID {dxl_id}: answers ping (model {model}) but not reads")
