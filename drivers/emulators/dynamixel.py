@@ -8,6 +8,9 @@ accessors for a physics adapter (every 1 ms): `set_present`, `set_joint_state`, 
 `goal_joint_positions`, `torque_enabled`, `torque_enabled_all`; `drain_events` for the event log; faults for tests:
 `silence`, `set_hardware_error`, `corrupt_replies`, `set_reply_delay`, `clear_faults`. Where the sources are silent
 (BRUCE's exact model is not stated anywhere), the choice is noted at the code that makes it.
+
+The servos' time (Bus Watchdog, Realtime Tick, the inter-byte gap, event stamps) is `clock`, time.monotonic by default;
+a test passes a clock it advances itself (`clock=`) to run the servos in lockstep with it, in virtual time.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -158,7 +161,8 @@ class XSeriesServo:
     """One servo's control table and instruction semantics. Not locked: the bus emulator holds its lock."""
 
     def __init__(self, dxl_id: int, model_number: int = XM430_W350, firmware: int = FIRMWARE_VERSION,
-                 track_goals: bool = True):
+                 track_goals: bool = True, clock: Callable[[], float] = time.monotonic):
+        self.clock = clock                 # the servo's time in seconds (Realtime Tick; the bus stamps packets)
         self.items = {item.name: item for item in _items(model_number, firmware)}
         self.owner: list[Item | None] = [None] * TABLE_SIZE
         for item in self.items.values():
@@ -169,7 +173,7 @@ class XSeriesServo:
         self._registered: tuple[int, bytes] | None = None
         self._reset(keep=())
         self._put("id", dxl_id)
-        self.last_rx = time.monotonic()    # when this servo last heard an instruction packet (Bus Watchdog)
+        self.last_rx = clock()             # when this servo last heard an instruction packet (Bus Watchdog)
         self.notes: list[str] = []         # event texts not yet taken by the bus (see take_notes)
         self._torque_seen = self.torque
 
@@ -221,7 +225,7 @@ class XSeriesServo:
         """(error number, data)."""
         if address + length > TABLE_SIZE:
             return ERR_ACCESS, b""
-        self._put("realtime_tick", int(time.monotonic() * 1000) % 32768)
+        self._put("realtime_tick", int(self.clock() * 1000) % 32768)
         return 0, bytes(self.table[self._target(a)] for a in range(address, address + length))
 
     def check_write(self, address: int, data: bytes) -> tuple[int, bytearray | None]:
@@ -392,7 +396,7 @@ class DynamixelBusEmulator:
 
     def __init__(self, ids: Sequence[int], *, signs: Sequence[float] | None = None,
                  model_number: int = XM430_W350, firmware: int = FIRMWARE_VERSION, track_goals: bool = True,
-                 frame_gap_s: float = 0.01, name: str = "dynamixel"):
+                 frame_gap_s: float = 0.01, name: str = "dynamixel", clock: Callable[[], float] = time.monotonic):
         ids = tuple(int(i) for i in ids)
         if not ids or len(set(ids)) != len(ids) or not all(0 <= i <= MAX_ID for i in ids):
             raise ValueError(f"ids must be unique servo IDs in 0..{MAX_ID}, got {ids}")
@@ -400,7 +404,8 @@ class DynamixelBusEmulator:
         if signs is None:
             signs = (1.0,) * len(ids)
         self.signs = np.asarray(signs, dtype=np.float64)
-        self.servos = [XSeriesServo(i, model_number, firmware, track_goals) for i in ids]
+        self.clock = clock    # device time, seconds (see the module's docstring); reply delays stay on the wall clock
+        self.servos = [XSeriesServo(i, model_number, firmware, track_goals, clock) for i in ids]
         self.name = name
         self.frame_gap_s = frame_gap_s
         self.stats = LinkStats()
@@ -438,14 +443,14 @@ class DynamixelBusEmulator:
 
     def _on_bytes(self, data: bytes) -> None:
         # A partial packet is dropped when no byte arrived for `frame_gap_s` (an inter-byte timeout).
-        now = time.monotonic()
+        arrived, now = time.monotonic(), self.clock()
         with self._lock:
             if self._parser.pending and now - self._last_rx > self.frame_gap_s:
                 self._parser.discard()
             self._last_rx = now
         reply = self.handle(data)
         if reply and self._pty is not None:
-            self.reply_delay.wait(now)  # outside the lock: the physics' accessors go on meanwhile
+            self.reply_delay.wait(arrived)  # outside the lock: the physics' accessors go on meanwhile
             self._pty.send(reply)
 
     def set_reply_delay(self, fixed: float, jitter: float = 0.0, seed: int | str | None = None) -> None:
@@ -456,7 +461,7 @@ class DynamixelBusEmulator:
     def handle(self, data: bytes) -> bytes:
         """Bytes from the host -> the bytes the servos answer (the pty thread calls this; tests may call it too)."""
         with self._lock:
-            now = time.monotonic()
+            now = self.clock()
             self._tick(now)     # the silence before these bytes first: a watchdog may have run out in it
             out = []
             for packet in self._parser.feed(data):
@@ -485,7 +490,7 @@ class DynamixelBusEmulator:
         """Every servo's Bus Watchdog checked at `now` (default: this moment); events logged. Time is checked
         lazily, whenever the emulator is touched (bytes received, before they count as heard; every accessor), so
         the state anyone observes is up to date and an expiry's event is stamped when it was detected."""
-        now = time.monotonic() if now is None else now
+        now = self.clock() if now is None else now
         for servo in self.servos:
             servo.check_watchdog(now)
         self._note(now)
@@ -493,13 +498,13 @@ class DynamixelBusEmulator:
     def check_watchdogs(self) -> list[int]:
         """Check every servo's Bus Watchdog now (the accessors do it too); the IDs whose watchdog ran out now."""
         with self._lock:
-            now = time.monotonic()
+            now = self.clock()
             expired = [servo.id for servo in self.servos if servo.check_watchdog(now)]
             self._note(now)
             return expired
 
     def drain_events(self) -> list[tuple[float, str]]:
-        """(time.monotonic() stamp, text) of the events since the last drain, oldest first (the newest
+        """(`clock` stamp, text) of the events since the last drain, oldest first (the newest
         `MAX_EVENTS` are kept, `events_dropped` counts the rest): every change of Torque Enable, whatever its cause
         ("dynamixel 11 torque on"), Bus Watchdog writes ("dynamixel 11 bus watchdog 20 (400 ms)"), a reboot's reset
         of it, and expiries. A packet's events carry the time its bytes arrived; an expiry, when it was detected.
@@ -740,7 +745,7 @@ class DynamixelBusEmulator:
         with self._lock:
             self._tick()
             self._by_id(dxl_id).set_hardware_error(bits)
-            self._note(time.monotonic())
+            self._note(self.clock())
 
     def corrupt_replies(self, ids: Iterable[int] | None = None, mode: str = "crc", count: int | None = None) -> None:
         """Corrupt the next `count` (None: all) status packets of `ids` (None: every servo). Modes: "crc" (bad CRC),
