@@ -30,6 +30,10 @@ class LifecycleError(RuntimeError):
     """An operation the backend's current lifecycle state does not allow."""
 
 
+class TruthSealed(RuntimeError):
+    """The simulator's truth was read where a robot-faithful run allows only what a robot measures."""
+
+
 class BackendError(RuntimeError):
     """A backend could not be built, started, read or written."""
 
@@ -112,8 +116,18 @@ class Backend(ABC):
         """Now, on the clock of the stamps this backend puts on its data (for the sensor-age check)."""
         return time.monotonic()
 
+    # A robot-faithful run seals the truth while anything but its observers runs (`runtime.run`): the control path
+    # must work on what a robot measures, and a read of the truth then raises instead of going unnoticed.
+    truth_sealed = False
+
     def ground_truth(self) -> GroundTruth | None:
-        """Simulator truth for evaluation; None on a real robot."""
+        """Simulator truth for evaluation; None on a real robot. Raises TruthSealed while `truth_sealed`."""
+        if self.truth_sealed:
+            raise TruthSealed(f"{self.name} backend: the simulator's truth was read in the control path of a "
+                              "robot-faithful run (only observers may read it)")
+        return self._ground_truth()
+
+    def _ground_truth(self) -> GroundTruth | None:
         return None
 
     def __enter__(self) -> Backend:

@@ -159,6 +159,7 @@ class TransferConfig:
     twin_time_constant_s: float = 2.0    # the twin integral's time constant: gain Kp_eq8 / T per s of offset
     twin_clip: float = 0.25              # share of joints.torque_limits
     twin_disturbance_rad: float = 0.3    # a larger offset from the twin is a push, not a gap: resync, not integrated
+    twin_lag_ticks: int = 10             # the integral acts on the twin's offset this many ticks old (its own thread)
     gap_monitor_window_s: float = 0.1
     gap_monitor_warn_rms: float = 2.0    # rad/s
 
@@ -264,6 +265,8 @@ BOUNDS: dict[str, Bound] = {
     "transfer.twin.time_constant_s": Bound(1.0, 60.0, "s", "twin integral settling; 0.5 s fell (transfer_twin_notes)"),
     "transfer.twin.clip": Bound(0.0, 1.0, "", "share of joints.torque_limits", low_open=True),
     "transfer.twin.disturbance_rad": Bound(0.01, 3.0, "rad", "offset from the twin taken as a push"),
+    "transfer.twin.lag_ticks": Bound(0, 200, "ticks", "the twin's answer may be this late: 0.2 s beside T >= 1 s",
+                                     integer=True),
     "transfer.gap_monitor.window_s": Bound(0.005, 10.0, "s", "RMS window of the one-step residual"),
     "transfer.gap_monitor.warn_rms": Bound(0.0, 100.0, "rad/s", "window RMS that logs a warning", low_open=True),
     "buses.*.baud": Bound(9600, 12_000_000, "bit/s", "UART rates up to the FTDI's 12 Mbaud", integer=True),

@@ -98,7 +98,8 @@ class MujocoBackend(Backend):
             self._actuator_gap = ActuatorGap(latency_ticks(self.gap.actuator_latency_s, cfg.dt),
                                              self.gap.actuator_time_constant_s, cfg.dt, cfg.n_joints,
                                              self.gap.per_joint("torque_scale", cfg.joints))
-            self._sensor_gap = SensorGap(self.gap, cfg.joints, latency_ticks(self.gap.sensor_latency_s, cfg.dt))
+            self._sensor_gap = SensorGap(self.gap, cfg.joints, latency_ticks(self.gap.sensor_latency_s, cfg.dt),
+                                         dt=cfg.dt)
         self.model = model
         self.data = mujoco.MjData(model)
         self._damping_kd = np.full(cfg.n_joints, cfg.safety.damping_kd)
@@ -208,7 +209,7 @@ class MujocoBackend(Backend):
         """World positions (nbody, 3) and orientations (nbody, 4; w, x, y, z) of every body, for display."""
         return self.data.xpos.copy(), self.data.xquat.copy()
 
-    def ground_truth(self) -> GroundTruth:
+    def _ground_truth(self) -> GroundTruth:
         data = self.data
         return GroundTruth(sim_time=float(data.time), base_pos=data.qpos[0:3].copy(),
                            base_quat=data.qpos[3:7].copy(), base_linvel=data.qvel[0:3].copy(),

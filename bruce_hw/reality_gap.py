@@ -10,8 +10,10 @@ A `RealityGap` lists the differences (every field defaults to "no gap"); `load_g
   (the bus), saturated at the scaled per-actuator limit, scaled by the torque-constant error (`torque_scale`: the
   drive sets the current for the nominal kt, the joint gets the true kt's torque), then followed by a first-order
   torque lag (the motor);
-- on the sensor path (`SensorGap`): encoder and IMU noise and bias, then the state reported is the one measured
-  `latency` ticks ago, with the stamps of when it was measured.
+- on the sensor path (`SensorGap`): encoder and IMU noise and bias, the encoder's quantisation, then the state
+  reported is the one measured `latency` ticks ago, with the stamps of when it was measured; the IMU sample is
+  older still by its own latency (with its own stamp), the foot switches report the contact of `contacts.delay_s`
+  before that and chatter for `contacts.bounce_s` after each change.
 
 Per-joint values are a number (every joint) or a mapping joint name -> number (joints left out take the no-gap
 value). Simulator ground truth is never perturbed: it is what a run is evaluated against.
@@ -29,7 +31,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from bruce_hw.types import RobotState
+from bruce_hw.types import FOOT_CONTACT_NAMES, ImuSample, RobotState
 from bruce_hw.yaml_reader import Bound, YamlReader, read_yaml
 
 GAPS_PACKAGE = "configs.gaps"
@@ -76,12 +78,28 @@ class RealityGap:
     q_bias: Any = _gap_field("encoder.q_bias", Bound(-0.1, 0.1, "rad", "6 deg: beyond, homing failed"), "per_joint")
     qd_noise: Any = _gap_field("encoder.qd_noise", Bound(0.0, 1.0, "rad/s", "std"), "per_joint")
     qd_bias: Any = _gap_field("encoder.qd_bias", Bound(-1.0, 1.0, "rad/s", "offset"), "per_joint")
+    # The reported q is rounded to a multiple of this (after bias and noise); qd is left as it is (the BEAR reports
+    # its own filtered velocity, not a difference of counts).
+    q_resolution: Any = _gap_field(
+        "encoder.q_resolution", Bound(0.0, 0.01, "rad", "0.6 deg per count, a 10-bit encoder's: coarser is no servo"),
+        "per_joint")
     gyro_noise: float = _gap_field("imu.gyro_noise", Bound(0.0, 0.5, "rad/s", "std per axis"))
     gyro_bias: Any = _gap_field("imu.gyro_bias", Bound(-0.5, 0.5, "rad/s", "30 deg/s drift"), "vec3")
     accel_noise: float = _gap_field("imu.accel_noise", Bound(0.0, 2.0, "m/s²", "std per axis"))
     accel_bias: Any = _gap_field("imu.accel_bias", Bound(-2.0, 2.0, "m/s²", "a 12 deg calibration tilt"), "vec3")
     orientation_noise: float = _gap_field("imu.orientation_noise", Bound(0.0, 0.1, "rad", "6 deg std per axis"))
+    # The IMU sample (gyro, accel, orientation and its stamp) is this much older than the joints' sample.
+    imu_latency_s: float = _gap_field(
+        "imu.latency_s", Bound(0.0, 0.05, "s", "beyond sensor.latency_s; 50 ticks at 1 kHz: beyond is a dead link"))
     sensor_latency_s: float = _gap_field("sensor.latency_s", _LATENCY)
+    # Foot switches: the contact reported is the one of this long before the sample (switch travel, a debounce
+    # filter), on top of sensor.latency_s; the stamp stays the sample's (the board cannot see the switch's delay).
+    contact_delay_s: float = _gap_field(
+        "contacts.delay_s", Bound(0.0, 0.05, "s", "beyond sensor.latency_s; 50 ms is a third of a stance phase"))
+    # ... and for this long after each change of the (delayed) contact a switch chatters: each tick it reports a
+    # fair coin (as if it flipped with probability 0.5 every tick), drawn from the seeded generator.
+    contact_bounce_s: float = _gap_field(
+        "contacts.bounce_s", Bound(0.0, 0.02, "s", "chatter after each change; switches bounce 1-5 ms, 20 ms is worn"))
 
     def __post_init__(self) -> None:
         r = self._reader()
@@ -268,10 +286,17 @@ class ActuatorGap:
 
 
 class SensorGap:
-    """The sensor path: encoder and IMU noise and bias on each measurement, then the reported state is the one
-    measured `latency` ticks ago."""
+    """The sensor path: encoder and IMU noise and bias and the encoder's quantisation on each measurement, then the
+    reported state is the one measured `latency` ticks ago; its IMU sample `imu_ticks` ticks older still (with its
+    own stamp); its foot contacts those of `contact_ticks` ticks before its sample (the contacts' stamp stays the
+    sample's), each switch chattering for `bounce_ticks` ticks after each change of that delayed contact.
 
-    def __init__(self, gap: RealityGap, joints: Sequence[str], latency: int):
+    The extra delays and the bounce are whole ticks (`latency_ticks` of the gap's seconds and `dt`, each rounded on
+    its own). Without `dt`, the tick is the stamp step from the measurement of `reset` to the first one reported
+    after it (the mock's stamps are simulated time, one physics step apart). With the IMU latency and the contact
+    delay and bounce all zero, none of that runs: the path is the one without them, draw for draw."""
+
+    def __init__(self, gap: RealityGap, joints: Sequence[str], latency: int, dt: float | None = None):
         self.rng = np.random.default_rng(gap.seed)
         self.latency = latency
         self.q_bias, self.qd_bias = gap.per_joint("q_bias", joints), gap.per_joint("qd_bias", joints)
@@ -283,17 +308,113 @@ class SensorGap:
         self._bias = bool(np.any(self.q_bias) or np.any(self.qd_bias) or np.any(self.gyro_bias)
                           or np.any(self.accel_bias))
         self._measured = DelayLine()
+        # Quantisation: q -> round(q / step) * step on the joints whose step is > 0 (a scratch array, no allocation).
+        q_resolution = gap.per_joint("q_resolution", joints)
+        self._quantised = bool(np.any(q_resolution))
+        self._q_partly = None if np.all(q_resolution > 0.0) else q_resolution > 0.0  # the joints quantised, if not all
+        self._q_step = np.where(q_resolution > 0.0, q_resolution, 1.0)
+        self._counts = np.zeros(len(joints))
+        # Extra IMU delay, contact delay and bounce, in seconds until the tick is known.
+        self._seconds = (gap.imu_latency_s, gap.contact_delay_s, gap.contact_bounce_s)
+        self._staggered = any(self._seconds)  # anything beyond the common latency to do
+        self.imu_ticks = self.contact_ticks = self.bounce_ticks = 0
+        self._imu, self._contacts = DelayLine(), DelayLine()
+        # The measurement at reset until the lines are filled (the first report when the tick is learnt there).
+        self._placed: Any = _NOT_RESET if self._staggered else None
+        self.dt = dt
+        if dt is not None and self._staggered:
+            self._set_ticks(dt)
+        # Bounce: each switch's last delayed contact and the ticks its window has left.
+        self._last_contact = np.zeros(len(FOOT_CONTACT_NAMES), dtype=bool)
+        self._changed = np.zeros(len(FOOT_CONTACT_NAMES), dtype=bool)
+        self._bouncing = np.zeros(len(FOOT_CONTACT_NAMES), dtype=bool)
+        self._window = np.zeros(len(FOOT_CONTACT_NAMES), dtype=np.int64)
+        self._uniform = np.zeros(len(FOOT_CONTACT_NAMES))
+        self._flip = np.zeros(len(FOOT_CONTACT_NAMES), dtype=bool)
+        self._last_key = b""
+        self._open = 0  # ticks until every window has closed
+
+    def _set_ticks(self, dt: float) -> None:
+        imu_s, delay_s, bounce_s = self._seconds
+        self.dt = dt
+        self.imu_ticks, self.contact_ticks = latency_ticks(imu_s, dt), latency_ticks(delay_s, dt)
+        self.bounce_ticks = latency_ticks(bounce_s, dt)
 
     def reset(self, measure: Callable[[], RobotState]) -> None:
-        """Fill the delay line with measurements of the state just placed (what a robot reports before any
+        """Fill the delay lines with measurements of the state just placed (what a robot reports before any
         newer sample has come through)."""
         self._measured.fill([self._corrupt(measure()) for _ in range(self.latency)])
+        if not self._staggered:
+            return
+        # One more measurement for the IMU and contact lines: with the IMU's bias but no noise (no draw taken, so
+        # the noise that follows is the same as without these lines).
+        placed = measure()
+        placed.imu.gyro += self.gyro_bias
+        placed.imu.accel += self.accel_bias
+        self._placed = placed
+        if self.dt is not None:  # else the tick comes with the first report
+            self._fill()
+
+    def _fill(self) -> None:
+        """The IMU and contact delay lines full of the placed state's (copies of its one measurement); no switch
+        bouncing."""
+        placed, self._placed = self._placed, None
+        self._imu.fill([_copied_imu(placed.imu) for _ in range(self.imu_ticks)])
+        self._contacts.fill([placed.contacts.contact.copy() for _ in range(self.contact_ticks)])
+        self._last_contact[:] = placed.contacts.contact
+        self._last_key = self._last_contact.tobytes()
+        self._window[:] = 0
+        self._open = 0
 
     def report(self, measured: RobotState) -> RobotState:
-        return self._measured.pass_through(self._corrupt(measured))
+        state = self._measured.pass_through(self._corrupt(measured))
+        if self._staggered:
+            self._stagger(state, measured.joints.stamp)
+        return state
+
+    def _stagger(self, state: RobotState, now: float) -> None:
+        """The extra IMU delay, the contact delay and the bounce, on the state leaving the common delay line (no
+        longer held by it, so its fields can be swapped)."""
+        if self._placed is not None:  # the first report after a reset that did not know the tick
+            if self._placed is _NOT_RESET:
+                raise ValueError("SensorGap: report before reset (the IMU and contact delay lines are empty)")
+            if self.dt is None:
+                dt = now - self._placed.joints.stamp
+                if not dt > 0.0:
+                    raise ValueError(f"SensorGap: no tick between the reset's stamp {self._placed.joints.stamp} and "
+                                     f"the first report's {now}: give dt")
+                self._set_ticks(dt)
+            self._fill()
+        if self.imu_ticks:
+            state.imu = self._imu.pass_through(state.imu)
+        contacts = state.contacts
+        if self.contact_ticks:
+            contacts.contact = self._contacts.pass_through(contacts.contact)
+        if self.bounce_ticks:
+            self._bounce(contacts.contact)
+
+    def _bounce(self, contact: np.ndarray) -> None:
+        """Switch chatter, in place on the (delayed) contact array: a change of a switch's contact opens a window
+        of `bounce_ticks` ticks, that tick included, in which the switch reports a fair coin."""
+        window = self._window
+        key = contact.tobytes()
+        if key != self._last_key:  # some switch changed: (re)open its window
+            np.not_equal(contact, self._last_contact, out=self._changed)
+            np.copyto(window, self.bounce_ticks, where=self._changed)
+            self._last_contact[:] = contact
+            self._last_key = key
+            self._open = self.bounce_ticks
+        elif not self._open:  # no switch bouncing: nothing to do (most ticks)
+            return
+        self._open -= 1  # the longest window's ticks left after this one
+        bouncing = np.greater(window, 0, out=self._bouncing)
+        flip = np.less(self.rng.random(out=self._uniform), 0.5, out=self._flip)  # drawn only while bouncing
+        flip &= bouncing
+        contact ^= flip
+        window -= bouncing
 
     def _corrupt(self, state: RobotState) -> RobotState:
-        """Noise and bias, in place on the measurement's own arrays."""
+        """Noise, bias and quantisation, in place on the measurement's own arrays."""
         joints, imu = state.joints, state.imu
         normal = self.rng.standard_normal
         if self._bias:
@@ -304,6 +425,12 @@ class SensorGap:
         if self._encoder_noise:
             joints.q += self.q_noise * normal(joints.q.shape[0])
             joints.qd += self.qd_noise * normal(joints.qd.shape[0])
+        if self._quantised:
+            counts = np.divide(joints.q, self._q_step, out=joints.q if self._q_partly is None else self._counts)
+            np.round(counts, out=counts)
+            counts *= self._q_step
+            if self._q_partly is not None:
+                np.copyto(joints.q, counts, where=self._q_partly)
         if self.gyro_noise:
             imu.gyro += self.gyro_noise * normal(3)
         if self.accel_noise:
@@ -312,3 +439,11 @@ class SensorGap:
             # A small rotation (rotation vector ~ N(0, std^2) per axis) in the IMU frame; the result stays unit.
             mujoco.mju_quatIntegrate(imu.orientation, self.orientation_noise * normal(3), 1.0)
         return state
+
+
+_NOT_RESET = object()  # SensorGap._placed before the first reset
+
+
+def _copied_imu(imu: ImuSample) -> ImuSample:
+    return ImuSample(gyro=imu.gyro.copy(), accel=imu.accel.copy(),
+                     orientation=None if imu.orientation is None else imu.orientation.copy(), stamp=imu.stamp)

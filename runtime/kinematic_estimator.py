@@ -14,6 +14,7 @@ toe/heel contact switches; the sense board gives no orientation).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np
@@ -57,6 +58,20 @@ RESET_VELOCITY_STD = 0.01
 IMU_DELAY_S = 0.002
 
 FEET = (("r_toe", "r_heel"), ("l_toe", "l_heel"))  # per foot, its toe and heel contact/geom names
+
+
+@dataclass(frozen=True, slots=True)
+class EstimatorSnapshot:
+    """A `KinematicEstimator`'s state at one tick, and its estimate then (what a robot knows of its base)."""
+
+    quat: tuple[float, float, float, float]
+    gyro_bias: tuple[float, float, float]
+    angvel: tuple[float, float, float]
+    velocity: tuple[float, float, float]      # m/s, the estimator's (yaw-relative) world frame
+    acceleration: tuple[float, float, float]
+    variance: float
+    feet: tuple[tuple[int, int], ...]         # per foot, ticks since its toe and heel switches closed
+    estimate: BaseEstimate                    # carried over the IMU's delay, as the controller sees it
 
 
 def _index(indices: list[int]) -> slice | np.ndarray:
@@ -200,6 +215,23 @@ class KinematicEstimator:
             self.acceleration = ((px - vx) / dt, (py - vy) / dt, (pz - vz) / dt)
         self.velocity = (px, py, pz)
         self.variance = variance
+
+    def snapshot(self) -> EstimatorSnapshot:
+        """The filter's whole state (a few numbers: cheap enough for the control thread at a resync)."""
+        attitude = self.attitude
+        return EstimatorSnapshot(attitude.quat, attitude.gyro_bias, attitude.angvel, self.velocity,
+                                 self.acceleration, self.variance,
+                                 tuple((foot.toe_ticks, foot.heel_ticks) for foot in self.feet), self.estimate())
+
+    def restore(self, snapshot: EstimatorSnapshot, stamp: float) -> None:
+        """Continue from `snapshot` (another estimator's, e.g. the robot's for its twin), on a clock whose last
+        sample was at `stamp`."""
+        attitude = self.attitude
+        attitude.quat, attitude.gyro_bias, attitude.angvel = snapshot.quat, snapshot.gyro_bias, snapshot.angvel
+        attitude.stamp = self.stamp = stamp
+        self.velocity, self.acceleration, self.variance = snapshot.velocity, snapshot.acceleration, snapshot.variance
+        for foot, (toe, heel) in zip(self.feet, snapshot.feet, strict=True):
+            foot.toe_ticks, foot.heel_ticks = toe, heel
 
     def estimate(self) -> BaseEstimate:
         quat = np.array(self.attitude.quat)

@@ -46,6 +46,9 @@ class Histogram:
 class LoopStats:
     def __init__(self, sections: tuple[str, ...] = SECTIONS):
         self.work = Histogram()
+        # The tick's own CPU time (the control thread's CPU clock over the same span as `work`): a VM that does not
+        # run the thread does not advance it, so it is the loop's cost apart from the machine's stalls.
+        self.cpu = Histogram()
         self.period = Histogram()
         self.data_age = Histogram()  # age of the oldest joint or IMU sample when the tick read it
         self.sections = {name: Histogram() for name in sections}
@@ -72,6 +75,8 @@ class LoopStats:
             "skipped_ticks": self.skipped_ticks,
             "work_us": {"p50": self.work.percentile(50), "p99": self.work.percentile(99),
                         "max": self.work.max_ns / 1000.0 if self.work.n else None},
+            "cpu_us": {"p50": self.cpu.percentile(50), "p99": self.cpu.percentile(99),
+                       "p99.9": self.cpu.percentile(99.9), "max": self.cpu.max_ns / 1000.0 if self.cpu.n else None},
             "period_us": {"p50": self.period.percentile(50), "p99": self.period.percentile(99),
                           "max": self.period.max_ns / 1000.0 if self.period.n else None},
             "data_age_us": {"p50": self.data_age.percentile(50), "p99": self.data_age.percentile(99),
@@ -94,6 +99,8 @@ class LoopStats:
         lines = [f"  loop: {rate}work p50 {us(work['p50'])} / p99 {us(work['p99'])} / max {us(work['max'])} µs, period "
                  f"p50 {us(period['p50'])} / p99 {us(period['p99'])} / max {us(period['max'])} µs, late "
                  f"{self.late_ticks} ({100 * j['late_share']:.3f} %), skipped {self.skipped_ticks}",
+                 f"  tick CPU time p50 {us(j['cpu_us']['p50'])} / p99 {us(j['cpu_us']['p99'])} / p99.9 "
+                 f"{us(j['cpu_us']['p99.9'])} µs",
                  f"  data age p50 {us(j['data_age_us']['p50'])} / p99 {us(j['data_age_us']['p99'])} / max "
                  f"{us(j['data_age_us']['max'])} µs"]
         parts = [f"{name} {v['p50']:.0f}/{v['p99']:.0f}" for name, v in j["sections_us"].items()]

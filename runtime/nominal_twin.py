@@ -1,103 +1,126 @@
 """A live nominal twin of the robot (`NominalTwin`): the simulator's own closed loop, run beside the robot and
 resynchronised to it.
 
-The twin is the nominal MuJoCo model under a second instance of the nominal controller on the robot's command, with
-its own ground truth as its base estimate and its torques through its own safety stage (the simulator's went through
-one). Every `resync_ticks` it is set to the robot's state (measured joints; the base from `base_state`, the mock's
-ground truth) and its controller takes the robot's target and action memory; between resyncs it rolls on by itself,
-in phase (the gait clock is a function of the command history). `resync_requested` asks for one at the next policy
-tick, e.g. after a push the twin did not feel. Without a gap the twin reproduces the robot to rounding; with one,
-the posture offset between them over seconds is what no prediction over a few ticks sees
-(docs/transfer_twin_notes.md). Mock only: a robot does not measure its full base state.
+The twin is the nominal MuJoCo model under a second instance of the nominal controller on the robot's command, its
+torques through its own safety stage (the simulator's went through one). Every resync (`TwinInput.resync`) it is set
+to the robot's state and its controller takes the robot's target and action memory; between resyncs it rolls on by
+itself, in phase (the gait clock is a function of the command history). Without a gap the twin reproduces the robot;
+with one, the posture offset between them over seconds is what no prediction over a few ticks sees
+(docs/transfer.md, "The twin on the robot").
+
+Two ways to resynchronise, one per kind of run:
+
+- **From what the robot has** (an `EstimatorSnapshot`: the robot's kinematic estimator at that tick; every
+  robot-faithful run, and `--backend hw`). Joints as measured; roll and pitch from the estimator's attitude, yaw and
+  planar position the twin's own (nothing on the robot observes them); the base's angular and linear velocity from
+  the estimator; the height set so that the lowest toe or heel keeps the twin's own contact depth, so the resync
+  neither pushes a foot into the floor nor lifts the stance off it (noisy state injected into a simulator makes
+  invalid contacts). The twin's controller sees its own `KinematicEstimator` on the twin's own clean sensors,
+  continued from the robot's estimator state at each resync: it observes what the robot's policy observes, bias
+  and all, which is what makes the two policies act alike.
+- **From the simulator's truth** (a `GroundTruth`; diagnostic runs with `--estimator truth` only): the full base
+  state, and the twin's controller sees its own ground truth.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np
 
 from bruce_hw.config import RobotConfig
 from bruce_hw.quaternion import euler_of, rotate_to_body
-from bruce_hw.types import FootContacts, GroundTruth, ImuSample, JointState, RobotState
+from bruce_hw.types import GroundTruth, RobotState
 from runtime.estimation import BaseEstimate
-from runtime.inference import ModelError
+from runtime.kinematic_estimator import EstimatorSnapshot, KinematicEstimator
 from runtime.mixing import eq8_torque
-from runtime.reference_models import nominal_backend, set_state
+from runtime.reference_models import foot_spheres, nominal_model, place_from_estimate, set_state
 from runtime.safety import SafetyStage
 
 
-class NominalTwin:
-    """The nominal model under the nominal controller, resynchronised to the robot every `resync_ticks`."""
+@dataclass(slots=True)
+class TwinInput:
+    """What the robot's tick `tick` gives its twin (the arrays are the twin's to keep)."""
 
-    def __init__(self, config: RobotConfig, base_state: Callable[[], GroundTruth | None], resync_ticks: int,
-                 controller):
-        nominal = nominal_backend(config, base_state, "the nominal twin needs the robot's full state (base and "
-                                  "joints), which only the mock backend has (simulator ground truth); it is not "
-                                  "available on the robot")
+    tick: int
+    a: np.ndarray                 # the robot's controller target in force
+    q: np.ndarray                 # measured joints
+    qd: np.ndarray
+    command: np.ndarray           # (vx, vy, yaw rate) in force
+    sent: np.ndarray | None       # the torque the robot was sent last tick (the rate limit starts from it at a resync)
+    resync: EstimatorSnapshot | GroundTruth | None = None  # set the twin to the robot at this tick
+
+
+class NominalTwin:
+    """The nominal model under the nominal controller, resynchronised to the robot whenever it is told to."""
+
+    def __init__(self, config: RobotConfig, controller):
+        nominal = nominal_model(config)
+        self.backend = nominal  # its `_measure` reads the twin's clean sensors
         self.model, self.data = nominal.model, nominal.data
         self._qpos, self._dofs, self._acts = nominal._qpos, nominal._dofs, nominal._acts
+        self._spheres = foot_spheres(self.model)
         self.controller = controller
+        self.estimator = KinematicEstimator(config)
         self.safety = SafetyStage(config)
         self.eq8 = config.eq8
         self.decimation = config.policy_decimation
-        self.resync_ticks = resync_ticks
-        self.base_state = base_state
-        self._n = config.n_joints
+        self.standing_pose = config.standing_pose
         self.reset()
 
     def reset(self) -> None:
-        mujoco.mj_resetData(self.model, self.data)
+        # Standing on the floor, as the robot starts: the first resync keeps this contact depth.
+        self.backend.place(self.standing_pose)
         self.safety.reset()
-        self.tick = 0
-        self.resync_requested = False  # resync at the next policy tick, out of turn
+        self.tick = -1
+        self.from_truth = False   # the last resync was from the simulator's truth (diagnostic runs)
         self.a: np.ndarray | None = None
         self.q: np.ndarray | None = None  # the twin's joint posture at the robot's coming tick
 
-    def advance(self, a_robot: np.ndarray, q: np.ndarray, qd: np.ndarray, command: np.ndarray,
-                last_torque: np.ndarray | None) -> None:
-        """One tick, after the robot's controller gave `a_robot` on this tick from the measured joints (q, qd):
-        resync when due (to the measured joints: what the twin is compared with, and all a robot has; the base from
-        `base_state`), then the twin's own controller (on policy ticks), Eq. 8, its safety filter and one step.
-        `last_torque` is the torque the robot was sent last tick (the rate limit starts from it at a resync)."""
+    def advance(self, step: TwinInput) -> None:
+        """One tick, after the robot's controller gave `step.a` from the measured joints: resync when told to, then
+        the twin's own controller (on policy ticks), Eq. 8, its safety filter and one physics step."""
         data = self.data
-        policy_tick = self.tick % self.decimation == 0
-        resync = self.tick % self.resync_ticks == 0 or (self.resync_requested and policy_tick)
-        if resync:
-            self.resync_requested = False
-            truth = self.base_state()
-            if truth is None:
-                raise ModelError("nominal twin: the robot's full state is gone (mock backend only)")
-            set_state(data, self._qpos, self._dofs, truth, q, qd)
-            mujoco.mj_forward(self.model, data)
-            if last_torque is not None:
-                self.safety.previous = np.array(last_torque, dtype=float)
-        state, base = self._reading()
-        if self.tick == 0:
+        first = self.tick < 0
+        self.tick = step.tick
+        policy_tick = step.tick % self.decimation == 0
+        resync = step.resync
+        if resync is not None:
+            if isinstance(resync, GroundTruth):
+                set_state(data, self._qpos, self._dofs, resync, step.q, step.qd)
+                mujoco.mj_forward(self.model, data)
+            else:
+                place_from_estimate(self.model, data, self._qpos, self._dofs, resync.estimate, step.q, step.qd,
+                                    self._spheres)
+                self.estimator.restore(resync, float(data.time))
+            self.from_truth = isinstance(resync, GroundTruth)
+            if step.sent is not None:
+                self.safety.previous = np.array(step.sent, dtype=float)
+        state = self.backend._measure()
+        if first:
             self.controller.reset(state.joints.q)
-        if policy_tick:
-            a = self.controller(state, base, command)  # also advances its gait clock and heading reference
-            if resync:  # the robot's controller state: its target now is the action memory of both
-                a = np.array(a_robot, dtype=float)
+        if resync is None and not self.from_truth:  # a resync tick's measurement is in the robot's estimate already
+            if first:
+                self.estimator.reset(state)
+            else:
+                self.estimator.update(state)
+        if policy_tick or self.a is None:
+            a = self.controller(state, self._base(state), step.command)  # also advances its gait clock
+            if resync is not None:  # the robot's controller state: its target now is the action memory of both
+                a = np.array(step.a, dtype=float)
                 self.controller.last_action = a
             self.a = a
         tau = self.safety.filter(eq8_torque(self.a, state.joints.q, state.joints.qd, self.eq8), state)
         data.ctrl[self._acts] = tau
         mujoco.mj_step(self.model, data)
-        self.tick += 1
         self.q = data.qpos[self._qpos].copy()
 
-    def _reading(self) -> tuple[RobotState, BaseEstimate]:
-        """The twin's joints as a reading and its ground truth as the base estimate."""
+    def _base(self, state: RobotState) -> BaseEstimate:
+        """What the twin's controller sees of its base: its own estimator, or (truth-fed runs) its own truth."""
+        if not self.from_truth:
+            return self.estimator.estimate()
         data = self.data
-        t = float(data.time)
         quat = data.qpos[3:7].copy()
-        angvel = data.qvel[3:6].copy()
-        joints = JointState(q=data.qpos[self._qpos].copy(), qd=data.qvel[self._dofs].copy(), tau=np.zeros(self._n),
-                            temperature=np.zeros(self._n), stamp=t)
-        state = RobotState(joints=joints, imu=ImuSample(gyro=angvel, accel=np.zeros(3), orientation=quat, stamp=t),
-                           contacts=FootContacts(contact=np.zeros(4, dtype=bool), stamp=t), estop=False)
-        base = BaseEstimate(quat=quat, linvel=rotate_to_body(quat, data.qvel[0:3]), angvel=angvel,
+        return BaseEstimate(quat=quat, linvel=rotate_to_body(quat, data.qvel[0:3]), angvel=data.qvel[3:6].copy(),
                             euler=euler_of(quat))
-        return state, base

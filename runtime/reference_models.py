@@ -4,16 +4,17 @@ A reference model maps (q, qd, tau) at tick t to the simulator's (q, qd) at tick
 
 - `PinnReference`: the committed ONNX PINN (`runtime.inference.OnnxPinn`), its LSTM state carried from call to
   call, as the paper runs it;
-- `NominalReference`: the nominal MuJoCo model itself, its state set to the given joint state (and the base state
-  from `base_state`, the simulator's truth in the rehearsal), stepped once under the torque; a shadow that feeds it
-  its own last output rolls the whole model on, base included. It is the
-  *perfect-model control*: any scheme run on it shows what that scheme gives when its model is the simulator
-  exactly, so a gain that the PINN version has and this one lacks comes from the PINN's errors, not from
-  modelling the simulator. It needs a base state, which only the mock has (`bruce_hw.mock` ground truth).
+- `NominalReference`: the nominal MuJoCo model itself, its state set to the given joint state and a base state
+  (from the robot's estimate in a robot-faithful run, `place_from_estimate`; from the simulator's truth in a
+  truth-fed one), stepped once under the torque; a shadow that feeds it its own last output rolls the whole model
+  on, base included. It is the *perfect-model control*: any scheme run on it shows what that scheme gives when its
+  model is the simulator exactly, so a gain that the PINN version has and this one lacks comes from the PINN's
+  errors, not from modelling the simulator.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol
@@ -22,8 +23,11 @@ import mujoco
 import numpy as np
 
 from bruce_hw.config import REFERENCE_MODELS, RobotConfig
+from bruce_hw.quaternion import euler_of, roll_pitch_quaternion, rotation_entries
 from bruce_hw.types import GroundTruth
+from runtime.estimation import BaseEstimate
 from runtime.inference import ModelError, OnnxPinn
+from runtime.kinematic_estimator import FEET
 
 
 class ReferenceModel(Protocol):
@@ -34,16 +38,22 @@ class ReferenceModel(Protocol):
     def step(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
 
-def nominal_backend(config: RobotConfig, base_state: Callable[[], GroundTruth | None], refusal: str):
-    """A configured nominal mock whose model a reference sets to the simulator's state and steps; ModelError with
-    `refusal` where there is no simulator state to start from (any backend but the mock)."""
-    from bruce_hw.mock import MujocoBackend  # its configure() finds the joints, motors and checks the MJCF
+def nominal_model(config: RobotConfig):
+    """A configured nominal mock (no reality gap): the simulator's model, which a reference or the twin sets to the
+    robot's state and steps (its configure() finds the joints, motors and sensors and checks the MJCF)."""
+    from bruce_hw.mock import MujocoBackend
 
-    if base_state() is None:
-        raise ModelError(refusal)
     nominal = MujocoBackend(config)
     nominal.configure()
     return nominal
+
+
+def nominal_backend(config: RobotConfig, base_state: Callable[[], GroundTruth | None], refusal: str):
+    """`nominal_model`, for a user of the simulator's state: ModelError with `refusal` where there is none to start
+    from (any backend but the mock, or a robot-faithful run)."""
+    if base_state() is None:
+        raise ModelError(refusal)
+    return nominal_model(config)
 
 
 def set_state(data: mujoco.MjData, qpos: slice, dofs: slice, base: GroundTruth, q: np.ndarray,
@@ -53,6 +63,40 @@ def set_state(data: mujoco.MjData, qpos: slice, dofs: slice, base: GroundTruth, 
     data.qpos[0:3], data.qpos[3:7] = base.base_pos, base.base_quat
     data.qvel[0:3], data.qvel[3:6] = base.base_linvel, base.base_angvel
     data.qpos[qpos], data.qvel[dofs] = q, qd
+
+
+def foot_spheres(model: mujoco.MjModel) -> list[tuple[int, float]]:
+    """(geom id, radius) of every toe and heel sphere: what the robot stands on."""
+    return [(model.geom(name).id, float(model.geom(name).size[0])) for foot in FEET for name in foot]
+
+
+def lowest_point(data: mujoco.MjData, spheres: list[tuple[int, float]]) -> float:
+    """Height of the lowest point of any of `spheres` (negative: in the floor); needs the model's kinematics."""
+    xpos = data.geom_xpos
+    return min(float(xpos[geom][2]) - radius for geom, radius in spheres)
+
+
+def place_from_estimate(model: mujoco.MjModel, data: mujoco.MjData, qpos: slice, dofs: slice,
+                        estimate: BaseEstimate, q: np.ndarray, qd: np.ndarray,
+                        spheres: list[tuple[int, float]]) -> None:
+    """Put the nominal model at what a robot knows of itself: the joints as measured, roll and pitch from its
+    estimate, the base's angular and linear velocity from its estimate; yaw and planar position stay the model's own
+    (nothing on the robot observes them), and the height is set so that the lowest toe or heel (`spheres`, from
+    `foot_spheres`) keeps the model's own contact depth: the new posture neither sinks a foot into the floor nor
+    lifts the stance off it. Ends with mj_forward."""
+    depth = lowest_point(data, spheres)
+    roll, pitch, _ = estimate.euler
+    yaw = float(euler_of(data.qpos[3:7])[2])
+    w, x, y, z = roll_pitch_quaternion(float(roll), float(pitch))
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    quat = (cy * w - sy * z, cy * x - sy * y, cy * y + sy * x, cy * z + sy * w)  # q_z(yaw) q_y(pitch) q_x(roll)
+    data.qpos[3:7] = quat
+    data.qpos[qpos], data.qvel[dofs] = q, qd
+    data.qvel[3:6] = estimate.angvel  # a free joint's angular velocity is in the body frame, as the estimate's
+    data.qvel[0:3] = np.array(rotation_entries(quat)).reshape(3, 3) @ np.asarray(estimate.linvel, dtype=float)
+    mujoco.mj_kinematics(model, data)
+    data.qpos[2] += depth - lowest_point(data, spheres)
+    mujoco.mj_forward(model, data)
 
 
 class PinnReference:
@@ -71,24 +115,26 @@ class PinnReference:
 
 
 class NominalReference:
-    """The nominal MuJoCo model stepped once from (base state, q, qd) under tau, saturated as the mock's motors do."""
+    """The nominal MuJoCo model stepped once from (base, q, qd) under tau, saturated as the mock's motors do. The
+    base comes from `base_state`: the robot's estimate in a robot-faithful run (`place_from_estimate`), the
+    simulator's truth in a truth-fed one."""
 
     name = "nominal"
 
-    def __init__(self, config: RobotConfig, base_state: Callable[[], GroundTruth | None]):
-        nominal = nominal_backend(config, base_state, "transfer.reference_model nominal: the nominal MuJoCo model "
-                                  "needs the simulator's base state, which only the mock backend has (it is the "
-                                  "rehearsal's perfect-model control)")
+    def __init__(self, config: RobotConfig, base_state: Callable[[], BaseEstimate | GroundTruth | None]):
+        nominal = nominal_model(config)
+        self._nominal, self._standing_pose = nominal, config.standing_pose
         self.model, self.data = nominal.model, nominal.data
         # The backend's own index slices of the config's joints in qpos, qvel and ctrl (checked contiguous there).
         self._qpos, self._dofs, self._acts = nominal._qpos, nominal._dofs, nominal._acts
+        self._spheres = foot_spheres(self.model)
         self._coupling = config.coupling
         self._torque_limit = config.actuator_torque_limit
         self._base_state = base_state
         self._last: tuple[np.ndarray, np.ndarray] | None = None  # what step returned last, to recognise a rollout
 
     def reset(self) -> None:
-        mujoco.mj_resetData(self.model, self.data)
+        self._nominal.place(self._standing_pose)  # on the floor, as the robot starts: its contact depth is kept
         self._last = None
 
     def step(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -100,8 +146,11 @@ class NominalReference:
         if not rolling:
             base = self._base_state()
             if base is None:
-                raise ModelError("nominal reference model: needs the simulator's base state (mock backend only)")
-            set_state(data, self._qpos, self._dofs, base, q, qd)
+                raise ModelError("nominal reference model: no base state (the simulator's truth is gone)")
+            if isinstance(base, GroundTruth):
+                set_state(data, self._qpos, self._dofs, base, q, qd)
+            else:
+                place_from_estimate(self.model, data, self._qpos, self._dofs, base, q, qd, self._spheres)
         data.ctrl[self._acts] = self._coupling.saturate(tau, self._torque_limit)
         mujoco.mj_step(self.model, data)
         self._last = (data.qpos[self._qpos].copy(), data.qvel[self._dofs].copy())
@@ -109,11 +158,12 @@ class NominalReference:
 
 
 def build_reference(config: RobotConfig, kind: str, pinn_path: Path | None,
-                    base_state: Callable[[], GroundTruth | None], lookahead: int = 0,
+                    base_state: Callable[[], BaseEstimate | GroundTruth | None], lookahead: int = 0,
                     scheme: str = "pinn") -> ReferenceModel:
     """The reference model `kind` (REFERENCE_MODELS): the PINN at `pinn_path` (default: pinn.model of the config;
     `lookahead` ticks rolled further, for Eq. 9's look-ahead variant), or the nominal MuJoCo model on `base_state`
-    (the backend's ground truth). `scheme` names the transfer scheme that asked, in errors."""
+    (the robot's base estimate, or in a truth-fed run the backend's ground truth). `scheme` names the transfer
+    scheme that asked, in errors."""
     if kind == "nominal":
         return NominalReference(config, base_state)
     if kind != "pinn":
@@ -121,7 +171,7 @@ def build_reference(config: RobotConfig, kind: str, pinn_path: Path | None,
     path = pinn_path or config.models.pinn
     if path is None:
         raise ModelError(f"--transfer {scheme} needs a PINN model: pass --pinn PATH or set pinn.model in "
-                         f"{config.path} (or transfer.reference_model: nominal on the mock)")
+                         f"{config.path} (or transfer.reference_model: nominal)")
     pinn = OnnxPinn(path, config.n_joints, lookahead=lookahead)
     pinn.warmup()
     return PinnReference(pinn)

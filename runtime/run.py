@@ -36,7 +36,7 @@ from bruce_hw.config import RobotConfig
 from bruce_hw.io_priority import above_the_caller
 from bruce_hw.types import JointCommand, RobotState
 from runtime.controllers import build_controller
-from runtime.estimation import Estimator, tilt_angle
+from runtime.estimation import Estimator, GroundTruthEstimator, tilt_angle
 from runtime.estimators import make_estimator
 from runtime.exit import FAULT_CLASSES, NOTHING_ENABLED, ExitCode, StopFlag, StopRequested
 from runtime.falls import FALL_TILT_RAD
@@ -80,6 +80,8 @@ class RunSummary:
     fault_class: str | None = None   # input, safety, bus, internal (runtime.exit.ExitCode); None: a normal end
     link: dict | None = None         # the backend's bus figures (hw: cycles, lost replies per ID)
     gap: GapMonitor | None = None    # the live gap monitor, with a transfer scheme that has a reference model
+    robot_faithful: bool = True      # the control path saw only what a robot measures (not the simulator's truth)
+    scheme_report: dict = field(default_factory=dict)  # the transfer scheme's own figures (TransferScheme.report)
 
     def end(self, code: ExitCode, cause: str | None = None) -> None:
         """Record how the run ended (the first fault wins)."""
@@ -94,7 +96,9 @@ class RunSummary:
         return self.loop.ticks
 
     def to_json(self) -> dict:
-        out = {k: v for k, v in asdict(self).items() if k not in ("truth", "loop", "realtime_grant", "gap")}
+        out = {k: v for k, v in asdict(self).items()
+               if k not in ("truth", "loop", "realtime_grant", "gap", "scheme_report")}
+        out.update(self.scheme_report)
         out["exit_code"] = int(self.exit_code)
         out.update(self.loop.to_json())
         out["realtime_grant"] = self.realtime_grant.to_json() if self.realtime_grant else None
@@ -260,7 +264,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
                 pinn: Path | None = None, rerun=None, controller=None, controller_kind: str = "policy",
                 estimator: str | Estimator | None = None, commands=None,
                 observers: list[TickObserver] | tuple[TickObserver, ...] = (),
-                stop: StopFlag | None = None) -> RunSummary:
+                stop: StopFlag | None = None, privileged: bool = False) -> RunSummary:
     """Run one session. `rerun` is a `runtime.telemetry.RerunSink` (None: no telemetry); `controller_kind` picks
     the nominal controller (`build_controller`), and `controller` replaces it (anything with reset(q) and
     __call__(state, base, command) -> a); `estimator` is an estimator kind (`runtime.estimators.ESTIMATORS`) or
@@ -269,7 +273,9 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
     (default: stand still). `observers` (`runtime.observers.TickObserver`, e.g. `training.collect`'s recorder) see
     every tick after the write, outside the timed sections, after the mock's own ground-truth observers (which fill
     `summary.truth`); a non-empty string one returns ends the run after that tick, as the end of `duration` does,
-    with that string as the stop cause.
+    with that string as the stop cause. A run is robot-faithful (`summary.robot_faithful`: the simulator's truth is
+    sealed to all but the observers, `Backend.truth_sealed`) unless the estimator is `truth` or the controller is
+    `privileged` (a training teacher that plans on the simulator's truth).
 
     SIGINT/SIGTERM (`stop`, installed here if not given) before activation end start-up at once with nothing
     enabled (the summary says so, exit code 0, nothing raised); after, the loop ends through damping. Every model is
@@ -284,25 +290,33 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
     wall_start = time.perf_counter()
     grant: RealtimeGrant | None = None
     telemetry = None
+    scheme: TransferScheme | None = None
     try:
         stop.arm()
         backend.configure()
         robot = backend.read()
         watching = list(observers)
-        if backend.ground_truth() is not None:
+        has_truth = backend.ground_truth() is not None
+        if has_truth:
             summary.truth = GroundTruthLog(nominal_base_height=backend.nominal_base_height)
             watching[:0] = ground_truth_observers(summary.truth)
+        if estimator is None or isinstance(estimator, str):
+            kind = estimator or ("truth" if has_truth else "kinematic")
+            estimator = make_estimator(kind, backend, config)
+        # Robot-faithful unless the controller is fed the simulator's truth (a labelled diagnostic): then nothing but
+        # the observers may read the truth, and a read anywhere else raises (Backend.truth_sealed).
+        summary.robot_faithful = not (privileged or isinstance(estimator, GroundTruthEstimator))
+        sealed = has_truth and summary.robot_faithful
+        backend.truth_sealed = sealed
         # A twin scheme runs a second instance of the robot's own nominal controller (a controller object passed in
         # cannot be copied: its twin gets the configured policy).
         twin_controller = None if controller is not None else (
             lambda: build_controller(config, policy, controller_kind)[0])
-        scheme = build_scheme(config, transfer, pinn, base_state=backend.ground_truth,
-                              twin_controller=twin_controller)
+        scheme = build_scheme(config, transfer, pinn, base_state=None if summary.robot_faithful else
+                              backend.ground_truth, twin_controller=twin_controller, estimator=estimator,
+                              paced=realtime)
         summary.gap = build_gap_monitor(config, scheme)
         pinn_runner = getattr(scheme.reference, "pinn", None)  # checked on the measured pose below
-        if estimator is None or isinstance(estimator, str):
-            kind = estimator or ("truth" if backend.ground_truth() is not None else "kinematic")
-            estimator = make_estimator(kind, backend, config)
         if controller is None:
             controller, controller_name = build_controller(config, policy, controller_kind)
         else:
@@ -342,7 +356,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
             print(f"bruce-run: {grant.text()}", flush=True)
         gc.disable()
         _loop(backend, config, controller, estimator, commands, scheme, telemetry, summary, stop, duration,
-              realtime, tuple(watching))
+              realtime, tuple(watching), sealed)
         summary.final_state = backend.state.value
         if backend.state is LifecycleState.FAULT:
             summary.final_state = f"{backend.state.value}: damping"
@@ -363,7 +377,11 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         gc.enable()
         gc.unfreeze()
         summary.wall_time = time.perf_counter() - wall_start
+        backend.truth_sealed = False
         try:
+            if scheme is not None:
+                scheme.close()
+                summary.scheme_report = scheme.report()
             if grant is not None:
                 grant.release()
             if telemetry is not None:
@@ -388,7 +406,8 @@ def _settle(backend: Backend, summary: RunSummary) -> None:
 
 def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimator, commands, scheme: TransferScheme,
           telemetry, summary: RunSummary, stop: StopFlag, duration: float | None, realtime: bool,
-          observers: tuple[TickObserver, ...] = ()) -> None:
+          observers: tuple[TickObserver, ...] = (), sealed: bool = False) -> None:
+    """The ticks. `sealed`: the backend's truth is sealed, and opened only while the observers run."""
     stats = summary.loop
     sections = stats.sections
     h_read, h_policy, h_pinn, h_mix = sections["read"], sections["policy"], sections["pinn"], sections["mixing"]
@@ -408,9 +427,12 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     clock0 = backend.clock()
     view = TickView(backend, clock0)
     view.scheme, view.safety, view.gap = scheme, safety, gap
+    backend.truth_sealed = False
     for observer in observers:
         observer.on_start(backend, config)
+    backend.truth_sealed = sealed
     perf = time.perf_counter_ns
+    cpu = time.thread_time_ns  # the control thread's own CPU clock (stats.cpu)
     pacer = Pacer(config.dt)
     late_ns = pacer.late_ns
     pacer.start()
@@ -427,6 +449,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
                 behind = pacer.wait()
                 if behind > late_ns:
                     stats.overrun(behind)
+            c0 = cpu()
             t0 = perf()
             robot = backend.read()
             t1 = perf()
@@ -487,10 +510,12 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
             t8 = perf()
             if observers:  # evaluation only: in the tick's work, in no section
                 view.fill(tick, now, robot, command, a, tau_star, tau)
+                backend.truth_sealed = False
                 for observer in observers:
                     cause = observer.on_tick(view)
                     if cause:
                         observer_stop = observer_stop or cause
+                backend.truth_sealed = sealed
             h_read.add(t1 - t0)
             h_policy.add(t2 - t1)
             h_pinn.add(t4 - t3)
@@ -499,6 +524,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
             h_write.add(t7 - t6)
             h_tel.add(t8 - t7)
             stats.work.add(perf() - t0)
+            stats.cpu.add(cpu() - c0)
             if tick:
                 stats.period.add(t0 - previous_start)
             else:
@@ -512,6 +538,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
         stats.late_ticks, stats.skipped_ticks = pacer.late_ticks, pacer.skipped_ticks
         if tick > 1:
             stats.loop_s = (previous_start - first_start) / 1e9
+        backend.truth_sealed = False  # the evaluation after the loop reads it; the damping hold does not
 
     if stop.cause is not None:
         safety.trip(f"{stop.cause} received")

@@ -19,10 +19,12 @@ import numpy as np
 from bruce_hw.config import TRANSFER_SCHEMES as TRANSFERS  # the config validates transfer.scheme against them
 from bruce_hw.config import PdGains, RobotConfig
 from runtime.controllers import build_controller
+from runtime.inference import ModelError
 from runtime.mixing import eq8_torque, eq9_torque
-from runtime.nominal_twin import NominalTwin
+from runtime.nominal_twin import NominalTwin, TwinInput
 from runtime.reference_models import ReferenceModel, build_reference
 from runtime.transfer_gains import joint_inertia, observer_gain, pd_gains
+from runtime.twin_runner import MAX_BACKLOG_TICKS, InlineTwinRunner, ThreadTwinRunner, TwinIntegral
 
 EQ9_ALIASES = ("pinn", "eq9")  # `--transfer pinn` has always meant the paper's Eq. 9
 TWIN_SCHEMES = {"twin": "direct", "shadow_twin": "shadow"}  # each one's inner scheme
@@ -51,6 +53,13 @@ class TransferScheme:
 
     def torque(self, tau_star: np.ndarray, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
         return tau_star
+
+    def close(self) -> None:
+        """Release what the scheme started (the twin's thread); called on every exit path of a run."""
+
+    def report(self) -> dict:
+        """The scheme's own figures for the run's summary (the twin's: resyncs, how far behind it ran)."""
+        return {}
 
 
 class Eq9Scheme(TransferScheme):
@@ -146,42 +155,71 @@ class ObserverScheme(TransferScheme):
 
 class TwinScheme(TransferScheme):
     """An inner scheme (direct or the shadow) plus a slow clipped integral of the robot's posture offset from its
-    live nominal twin (`runtime.nominal_twin`): u <- clip(u + Kp dt / T (q_twin - q), +- clip), Kp the Eq. 8
-    stiffness, T = `transfer.twin.time_constant_s`. It sees the offsets that build over seconds (a static load, a
-    turning gait's lean), which no prediction over a few ticks does; where the robot is the simulator, u stays 0.
-    An offset above `transfer.twin.disturbance_rad` is a push the twin did not feel: not integrated, and the twin
-    resynchronises. Mock only: the twin needs the full base state."""
+    live nominal twin (`runtime.nominal_twin`, `runtime.twin_runner.TwinIntegral`): u <- clip(u + Kp dt / T
+    (q_twin - q), +- clip), Kp the Eq. 8 stiffness, T = `transfer.twin.time_constant_s`. It sees the offsets that
+    build over seconds (a static load, a turning gait's lean), which no prediction over a few ticks does; where the
+    robot is the simulator, u stays 0. The twin is resynchronised to the robot every `resync_ticks` (and at the next
+    policy tick after an offset that looks like a push) from `resync_state()`: the robot's estimator snapshot in a
+    robot-faithful run, the simulator's truth in a truth-fed one. It runs where `runner` puts it (inline, or on a
+    thread of its own), and the torque uses the integral `transfer.twin.lag_ticks` old."""
 
-    def __init__(self, inner: TransferScheme, twin: NominalTwin, gain: np.ndarray, clip: np.ndarray,
-                 hold_ticks: int, disturbance: float = np.inf):
+    def __init__(self, inner: TransferScheme, runner, resync_state, resync_ticks: int, decimation: int):
         super().__init__(inner.reference)
         self.name = "twin" if inner.name == "direct" else f"{inner.name}_twin"
-        self.inner, self.twin = inner, twin
-        self.gain, self.clip, self.hold_ticks = gain, clip, hold_ticks  # gain: N·m per rad of offset, per tick
-        self.disturbance = disturbance  # rad: an offset this large is something the twin did not feel, not a gap
-        self.u = np.zeros_like(gain)
-        self._ticks = 0
-        self._sent: np.ndarray | None = None  # the torque this scheme gave last tick
+        self.inner, self.runner = inner, runner
+        self.resync_state, self.resync_ticks, self.decimation = resync_state, resync_ticks, decimation
+        self.u = np.zeros_like(runner.integral.gain)
+        self.reset()
+
+    @property
+    def twin(self):
+        return self.runner.integral.twin
 
     def reset(self) -> None:
         self.inner.reset()
-        self.twin.reset()
+        self.runner.reset()
         self.q_hat = self.qd_hat = self.one_step = None
-        self.u = np.zeros_like(self.gain)
-        self._ticks = 0
-        self._sent = None
+        self.u = np.zeros_like(self.u)
+        self._tick = 0
+        self._sent: np.ndarray | None = None  # the torque this scheme gave last tick
+        self._resynced = -1      # the tick of the last resync
+        self._behind = False     # the twin fell behind and was not posted to: resync at the next policy tick
+        self.behind_ticks = 0    # ticks not posted because the twin was behind (paced runs on a starved machine)
+        self.resyncs = 0
+        self.backlog_max = 0     # the most ticks posted and not yet stepped, seen at a post
+
+    def close(self) -> None:
+        self.runner.close()
+
+    def report(self) -> dict:
+        return {"twin": {"resyncs": self.resyncs, "stepped": self.runner.done + 1, "backlog_max": self.backlog_max,
+                         "behind_ticks": self.behind_ticks, "lag_ticks": self.runner.lag,
+                         "thread": isinstance(self.runner, ThreadTwinRunner)}}
 
     def predict(self, a, q, qd, tau_star, command=None) -> None:
         self.inner.predict(a, q, qd, tau_star, command)
         self.q_hat, self.qd_hat, self.one_step = self.inner.q_hat, self.inner.qd_hat, self.inner.one_step
-        if self.twin.q is not None:
-            offset = self.twin.q - q
-            if np.abs(offset).max() > self.disturbance:
-                self.twin.resync_requested = True  # integrated, a push would be pulled back along the twin's path
-            elif self._ticks >= self.hold_ticks:
-                self.u = np.clip(self.u + self.gain * offset, -self.clip, self.clip)
-        self._ticks += 1
-        self.twin.advance(a, q, qd, np.zeros(3) if command is None else command, self._sent)
+        tick = self._tick
+        self._tick += 1
+        runner = self.runner
+        backlog = runner.backlog()
+        self.backlog_max = max(self.backlog_max, backlog)
+        if backlog > MAX_BACKLOG_TICKS:
+            self._behind = True
+            self.behind_ticks += 1
+            return  # the integral holds
+        policy_tick = tick % self.decimation == 0
+        resync = tick % self.resync_ticks == 0 or (policy_tick and (
+            self._behind or runner.resync_asked(self._resynced, tick)))
+        if resync:
+            self._resynced, self._behind = tick, False
+            self.resyncs += 1
+        elif self._behind:
+            return
+        runner.post(TwinInput(tick, np.array(a, dtype=float), q.copy(), qd.copy(),
+                              np.zeros(3) if command is None else np.array(command, dtype=float), self._sent,
+                              self.resync_state() if resync else None))
+        self.u = runner.u_at(tick)
 
     def torque(self, tau_star, q, qd) -> np.ndarray:
         self._sent = self.inner.torque(tau_star, q, qd) + self.u
@@ -189,29 +227,38 @@ class TwinScheme(TransferScheme):
 
 
 def build_scheme(config: RobotConfig, name: str, pinn_path: Path | None = None, base_state=None,
-                 twin_controller=None) -> TransferScheme:
-    """The scheme `name` (TRANSFERS) with its reference model (`transfer.reference_model`; `base_state` gives the
-    nominal model its base state: the backend's ground truth) and its settings from `config.transfer`.
-    `twin_controller()` makes the twin schemes' second instance of the robot's nominal controller (default: the
-    configured walking policy)."""
+                 twin_controller=None, estimator=None, paced: bool = False) -> TransferScheme:
+    """The scheme `name` (TRANSFERS) with its reference model (`transfer.reference_model`) and its settings from
+    `config.transfer`. Where the schemes' nominal models get the robot's base from: `estimator` (the run's
+    `KinematicEstimator`: a robot-faithful run, any backend) or, when `base_state` is given instead, the simulator's
+    truth (a truth-fed diagnostic run on the mock). `twin_controller()` makes the twin schemes' second instance of
+    the robot's nominal controller (default: the configured walking policy); `paced`: the twin runs on a thread of
+    its own (`runtime.twin_runner`)."""
     if name not in TRANSFERS:
         raise ValueError(f"unknown transfer {name!r} (expected one of {', '.join(TRANSFERS)})")
     if name == "direct":
         return TransferScheme()
     settings = config.transfer
     if name in TWIN_SCHEMES:
-        inner = build_scheme(config, TWIN_SCHEMES[name], pinn_path, base_state)
+        inner = build_scheme(config, TWIN_SCHEMES[name], pinn_path, base_state, estimator=estimator)
         resync = max(1, round(settings.twin_resync_s * config.loop_hz))
         controller = twin_controller() if twin_controller is not None else build_controller(config, None, "policy")[0]
-        twin = NominalTwin(config, base_state or (lambda: None), resync, controller)
         # The integral starts at the first resync after the torque ramp: the window before began from the pose at
         # activation with the torques still fading in.
         ramp = round(config.safety.torque_ramp_s * config.loop_hz)
-        return TwinScheme(inner, twin, config.eq8.kp * config.dt / settings.twin_time_constant_s,
-                          settings.twin_clip * config.tau_limit, hold_ticks=-(-(ramp + 1) // resync) * resync,
-                          disturbance=settings.twin_disturbance_rad)
+        gain = config.eq8.kp * config.dt / settings.twin_time_constant_s
+        integral = TwinIntegral(NominalTwin(config, controller), gain, settings.twin_clip * config.tau_limit,
+                                hold_ticks=-(-(ramp + 1) // resync) * resync, disturbance=settings.twin_disturbance_rad)
+        runner = (ThreadTwinRunner if paced else InlineTwinRunner)(integral, settings.twin_lag_ticks)
+        return TwinScheme(inner, runner, _resync_state(name, base_state, estimator), resync,
+                          config.policy_decimation)
     lookahead = config.models.pinn_lookahead_ticks if name in EQ9_ALIASES else 0
-    reference = build_reference(config, settings.reference_model, pinn_path, base_state or (lambda: None),
+    reference_base = base_state if base_state is not None else (
+        None if estimator is None else estimator.estimate)
+    if settings.reference_model == "nominal" and reference_base is None:
+        raise ModelError(f"--transfer {name} with transfer.reference_model nominal: the nominal model needs the "
+                         "robot's base state, from the run's estimator (or, in a diagnostic, the simulator's truth)")
+    reference = build_reference(config, settings.reference_model, pinn_path, reference_base or (lambda: None),
                                 lookahead=lookahead, scheme=name)
     if name in EQ9_ALIASES:
         return Eq9Scheme(reference, config.eq9, one_step=lookahead == 0)
@@ -223,3 +270,15 @@ def build_scheme(config: RobotConfig, name: str, pinn_path: Path | None = None, 
     return ObserverScheme(reference, observer_gain(inertia, settings.observer_time_constant_s),
                           settings.observer_clip * config.tau_limit,
                           hold_ticks=round(config.safety.torque_ramp_s * config.loop_hz), bias=bias)
+
+
+def _resync_state(name: str, base_state, estimator):
+    """What the twin is resynchronised from: the simulator's truth where the run is truth-fed, else the robot's
+    estimator (its state and estimate, `KinematicEstimator.snapshot`)."""
+    if base_state is not None:
+        return base_state
+    snapshot = getattr(estimator, "snapshot", None)
+    if snapshot is None:
+        raise ModelError(f"--transfer {name}: the nominal twin is resynchronised from the kinematic estimator's "
+                         f"state; this run's estimator ({type(estimator).__name__}) has none")
+    return snapshot

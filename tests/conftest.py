@@ -192,7 +192,7 @@ SLOW_MODULES = {
     "test_emulator_cli", "test_train_dynamics", "test_pinn_export", "test_lstm_baseline", "test_analytic",
     "test_evaluate", "test_telemetry", "test_bear_reply_loss", "test_reality_gap", "test_run_outcomes", "test_cli",
     "test_loop", "test_transfer_schemes", "test_standing", "test_olnn", "test_commands", "test_rl_train",
-    "test_replay", "test_web_viewer",
+    "test_replay", "test_web_viewer", "test_robot_faithful",
 }
 
 

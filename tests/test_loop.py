@@ -15,7 +15,8 @@ from runtime.commands import CommandSchedule
 from runtime.inference import ModelError
 from runtime.run import run_session
 
-LOOP_KEYS = {"ticks", "late_ticks", "late_share", "work_us", "period_us", "sections_us", "worst_overruns_us"}
+LOOP_KEYS = {"ticks", "late_ticks", "late_share", "work_us", "cpu_us", "period_us", "sections_us",
+             "worst_overruns_us"}
 SECTIONS = {"read", "policy", "pinn", "mixing", "safety", "write", "telemetry"}
 
 
@@ -58,6 +59,10 @@ def test_stats_file_has_the_loop_keys_and_sections(config, tmp_path):
         assert set(data[key]) == {"p50", "p99", "max"} and 0 < data[key]["p50"] <= data[key]["p99"]
     assert set(data["sections_us"]) == SECTIONS
     assert all(set(v) == {"p50", "p99"} for v in data["sections_us"].values())
+    # The tick's CPU time: never more than its wall time (a thread cannot run longer than the time that passed)
+    cpu = data["cpu_us"]
+    assert set(cpu) == {"p50", "p99", "p99.9", "max"} and 0 < cpu["p50"] <= cpu["p99"] <= cpu["p99.9"] <= cpu["max"]
+    assert cpu["max"] <= data["work_us"]["max"] + 20  # the two clocks are read 2 µs apart at each end
     assert data["late_ticks"] == 0 and data["late_share"] == 0.0  # unpaced: nothing can be late
 
 

@@ -11,9 +11,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from bruce_hw.mock import MujocoBackend
-from bruce_hw.reality_gap import GapError, RealityGap, load_gap, profile_names
-from bruce_hw.types import JointCommand
+from bruce_hw.mock import CONTACT_THRESHOLD_N, MujocoBackend
+from bruce_hw.reality_gap import GapError, RealityGap, SensorGap, load_gap, profile_names
+from bruce_hw.types import FootContacts, ImuSample, JointCommand, JointState, RobotState
 from runtime.cli import main
 from runtime.commands import CommandSchedule
 from runtime.observers import EachTick
@@ -24,7 +24,9 @@ KNEE = 3  # r_knee in the config's joint order
 ONE_FACTOR_KEYS = {"latency_2ms": {"actuator_latency_s"}, "torque_lag_2ms": {"actuator_time_constant_s"},
                    "torque_constant_0p8": {"torque_scale"}, "coulomb_0p2": {"coulomb"}, "viscous_0p05": {"viscous"},
                    "mass_1p2": {"mass_scale", "inertia_scale"}, "armature_add_1bear": {"armature_add"},
-                   "sensor_noise_1ms": {"q_noise", "qd_noise", "sensor_latency_s"}}
+                   "sensor_noise_1ms": {"q_noise", "qd_noise", "sensor_latency_s"},
+                   "contact_delay_bounce": {"contact_delay_s", "contact_bounce_s"},
+                   "imu_latency_3ms": {"imu_latency_s"}, "encoder_quantisation": {"q_resolution"}}
 
 
 def configured(config, gap: RealityGap | None = None) -> MujocoBackend:
@@ -261,6 +263,213 @@ def test_place_resets_the_delay_lines_and_the_lag(config):
     np.testing.assert_array_equal(third.joints.tau, 0.0)  # measured at the first tick after placement
 
 
+# -- sensor path: contacts, IMU latency, quantisation, on hand-made states -------------------------------------
+DT = 0.001
+
+
+def made_state(k: int, contact, n_joints: int) -> RobotState:
+    """Tick k's measurement: every value says which tick it is (q = 0.01 k + a per-joint offset, gyro = k, ...),
+    stamped k ms; `contact` the 4 switch states."""
+    t = k * DT
+    return RobotState(
+        joints=JointState(q=0.01 * k + 0.1 * np.arange(n_joints), qd=np.full(n_joints, -float(k)),
+                          tau=np.zeros(n_joints), temperature=np.zeros(n_joints), stamp=t),
+        imu=ImuSample(gyro=np.full(3, float(k)), accel=np.array([0.0, 0.0, 9.81 + k]),
+                      orientation=np.array([1.0, 0.0, 0.0, 0.0]), stamp=t),
+        contacts=FootContacts(contact=np.array(contact, dtype=bool), stamp=t))
+
+
+def reported(config, gap: RealityGap, contacts: np.ndarray, dt: float | None = DT) -> list[RobotState]:
+    """What SensorGap reports for the measurements made_state(1..), contacts[k] at tick k, after a reset at
+    made_state(0). With `dt` None it learns the tick from the stamps (as in the mock)."""
+    sensors = SensorGap(gap, config.joints, round(gap.sensor_latency_s / DT), dt=dt)
+    sensors.reset(lambda: made_state(0, contacts[0], config.n_joints))
+    return [sensors.report(made_state(k, contacts[k], config.n_joints)) for k in range(1, len(contacts))]
+
+
+def switch_pattern(n_ticks: int, seed: int = 0) -> np.ndarray:
+    """(n_ticks, 4) switch states that change now and then (12 to 40 ticks apart on each switch)."""
+    rng = np.random.default_rng(seed)
+    states = np.zeros((n_ticks, 4), dtype=bool)
+    for switch in range(4):
+        k, value = 0, bool(switch % 2)
+        while k < n_ticks:
+            run = int(rng.integers(12, 40))
+            states[k:k + run, switch] = value
+            k, value = k + run, not value
+    return states
+
+
+@pytest.mark.parametrize(("latency", "delay"), [(0, 3), (2, 3), (1, 0), (0, 1)])
+@pytest.mark.parametrize("dt", [DT, None])
+def test_contact_delay_reports_the_switches_of_n_ticks_before_the_sample(config, latency, delay, dt):
+    truth = switch_pattern(200)
+    gap = RealityGap(sensor_latency_s=latency * DT, contact_delay_s=delay * DT)
+    states = reported(config, gap, truth, dt)
+    for k, state in enumerate(states, start=1):
+        np.testing.assert_array_equal(state.contacts.contact, truth[max(k - latency - delay, 0)], err_msg=f"{k}")
+        assert state.contacts.stamp == state.joints.stamp == state.imu.stamp == max(k - latency, 0) * DT
+        assert state.joints.q[0] == pytest.approx(0.01 * max(k - latency, 0))
+    assert sum(not np.array_equal(truth[k], truth[k - 1]) for k in range(1, 200)) > 10  # it did change
+
+
+def flips(config, seed: int, bounce: int, delay: int = 0, n_ticks: int = 600) -> tuple[np.ndarray, np.ndarray]:
+    """(reported != delayed truth, ticks since the delayed truth last changed) per tick and switch."""
+    truth = switch_pattern(n_ticks)
+    gap = RealityGap(seed=seed, contact_delay_s=delay * DT, contact_bounce_s=bounce * DT)
+    got = np.array([s.contacts.contact for s in reported(config, gap, truth)])
+    delayed = truth[np.maximum(np.arange(1, n_ticks) - delay, 0)]
+    since = np.zeros(delayed.shape, dtype=int)
+    last, age = truth[0], np.full(4, 10**6)
+    for k, row in enumerate(delayed):
+        age = np.where(row != last, 0, age + 1)
+        last = row
+        since[k] = age
+    return got != delayed, since
+
+
+@pytest.mark.parametrize("delay", [0, 3])
+def test_contact_bounce_only_within_the_window_after_each_change_and_a_fair_coin_there(config, delay):
+    bounce = 4
+    flipped, since = flips(config, seed=5, bounce=bounce, delay=delay)
+    inside = since < bounce  # the change's tick and the bounce - 1 after it
+    assert not flipped[~inside].any()
+    assert inside.sum() > 200
+    share = flipped[inside].mean()  # a fair coin: half of the window's ticks differ from the truth
+    assert share == pytest.approx(0.5, abs=5 * math.sqrt(0.25 / inside.sum()))
+    for age in range(bounce):  # every tick of the window bounces, the change's own included
+        assert flipped[since == age].any()
+
+
+def test_contact_bounce_is_deterministic_per_seed(config):
+    first, _ = flips(config, seed=5, bounce=4)
+    again, _ = flips(config, seed=5, bounce=4)
+    other, _ = flips(config, seed=6, bounce=4)
+    np.testing.assert_array_equal(first, again)
+    assert not np.array_equal(first, other)
+
+
+def test_contact_bounce_leaves_steady_switches_and_the_rest_of_the_state_alone(config):
+    truth = np.zeros((50, 4), dtype=bool)
+    truth[:, 1] = True  # never changes: no bounce, not even at reset
+    gap = RealityGap(contact_bounce_s=0.004, q_noise=1e-3, seed=2)
+    states = reported(config, gap, truth)
+    np.testing.assert_array_equal([s.contacts.contact for s in states], truth[1:])
+    without = reported(config, replace(gap, contact_bounce_s=0.0), truth)  # no switch bounced: no draw taken
+    np.testing.assert_array_equal([s.joints.q for s in states], [s.joints.q for s in without])
+
+
+@pytest.mark.parametrize(("latency", "imu"), [(0, 3), (1, 3), (2, 1)])
+@pytest.mark.parametrize("dt", [DT, None])
+def test_imu_latency_lags_the_imu_sample_and_its_stamp_behind_the_joints(config, latency, imu, dt):
+    gap = RealityGap(sensor_latency_s=latency * DT, imu_latency_s=imu * DT)
+    states = reported(config, gap, np.zeros((40, 4), dtype=bool), dt)
+    for k, state in enumerate(states, start=1):
+        joints_tick, imu_tick = max(k - latency, 0), max(k - latency - imu, 0)
+        assert state.joints.stamp == joints_tick * DT and state.joints.q[0] == pytest.approx(0.01 * joints_tick)
+        assert state.imu.stamp == imu_tick * DT and state.contacts.stamp == joints_tick * DT
+        np.testing.assert_array_equal(state.imu.gyro, np.full(3, float(imu_tick)))
+        assert state.imu.accel[2] == 9.81 + imu_tick
+        if k > latency + imu:
+            assert state.joints.stamp - state.imu.stamp == pytest.approx(imu * DT, abs=1e-12)
+
+
+@pytest.mark.parametrize("resolution", [2 * math.pi / 4096, 0.01, {"r_knee": 0.004}])
+def test_quantised_q_is_a_multiple_of_the_resolution_after_bias_and_noise_and_qd_is_untouched(config, resolution):
+    gap = RealityGap(seed=1, q_resolution=resolution, q_noise=1e-3, q_bias=0.02)
+    step = gap.per_joint("q_resolution", config.joints)
+    unquantised = reported(config, replace(gap, q_resolution=0.0), np.zeros((60, 4), dtype=bool))  # same draws
+    for state, raw in zip(reported(config, gap, np.zeros((60, 4), dtype=bool)), unquantised, strict=True):
+        q, counts = state.joints.q, state.joints.q / np.where(step > 0, step, 1.0)
+        np.testing.assert_allclose(counts[step > 0], np.round(counts[step > 0]), rtol=0, atol=1e-9)
+        assert np.all(np.abs(q - raw.joints.q) <= step / 2 + 1e-12)
+        np.testing.assert_array_equal(q[step == 0], raw.joints.q[step == 0])
+        np.testing.assert_array_equal(state.joints.qd, raw.joints.qd)
+    assert isinstance(resolution, float) or set(step) == {0.0, 0.004}
+
+
+def old_sensor_path(config, gap: RealityGap, contacts: np.ndarray) -> list[RobotState]:
+    """The sensor path as it was before the IMU latency, the contacts' delay and bounce and the quantisation: bias,
+    then noise in the order q, qd, gyro, accel, orientation from default_rng(seed), then `latency` ticks of delay."""
+    rng = np.random.default_rng(gap.seed)
+    q_bias, q_noise = gap.per_joint("q_bias", config.joints), gap.per_joint("q_noise", config.joints)
+    qd_noise = gap.per_joint("qd_noise", config.joints)
+
+    def corrupt(state: RobotState) -> RobotState:
+        state.joints.q += q_bias
+        state.imu.gyro += gap.vec3("gyro_bias")
+        state.joints.q += q_noise * rng.standard_normal(config.n_joints)
+        state.joints.qd += qd_noise * rng.standard_normal(config.n_joints)
+        state.imu.gyro += gap.gyro_noise * rng.standard_normal(3)
+        mujoco.mju_quatIntegrate(state.imu.orientation, gap.orientation_noise * rng.standard_normal(3), 1.0)
+        return state
+
+    latency = round(gap.sensor_latency_s / DT)
+    line = [corrupt(made_state(0, contacts[0], config.n_joints)) for _ in range(latency)]
+    out = []
+    for k in range(1, len(contacts)):
+        line.append(corrupt(made_state(k, contacts[k], config.n_joints)))
+        out.append(line.pop(0))
+    return out
+
+
+def test_a_profile_without_the_new_keys_reports_bit_identically_to_the_old_sensor_path(config, tmp_path):
+    truth = switch_pattern(100)
+    path = tmp_path / "old.yaml"
+    path.write_text("seed: 11\nencoder:\n  q_noise: 1.0e-3\n  q_bias: 0.01\n  qd_noise: 0.03\nimu:\n"
+                    "  gyro_noise: 0.01\n  gyro_bias: [0.001, 0.0, -0.002]\n  orientation_noise: 0.01\n"
+                    "sensor:\n  latency_s: 0.002\n")
+    gap = load_gap(path, config.joints)
+    assert gap == replace(gap, imu_latency_s=0.0, contact_delay_s=0.0, contact_bounce_s=0.0, q_resolution=0.0)
+    expected = old_sensor_path(config, gap, truth)
+    for dt in (DT, None):
+        got = reported(config, gap, truth, dt)
+        for a, b in zip(got, expected, strict=True):
+            for name in ("q", "qd", "stamp"):
+                np.testing.assert_array_equal(getattr(a.joints, name), getattr(b.joints, name))
+            for name in ("gyro", "accel", "orientation", "stamp"):
+                np.testing.assert_array_equal(getattr(a.imu, name), getattr(b.imu, name))
+            np.testing.assert_array_equal(a.contacts.contact, b.contacts.contact)
+            assert a.contacts.stamp == b.contacts.stamp
+
+
+def test_sensor_gap_needs_a_reset_and_a_tick_for_the_new_delays(config):
+    sensors = SensorGap(RealityGap(imu_latency_s=0.002), config.joints, 0)
+    with pytest.raises(ValueError, match="report before reset"):
+        sensors.report(made_state(1, [False] * 4, config.n_joints))
+    sensors.reset(lambda: made_state(0, [False] * 4, config.n_joints))
+    with pytest.raises(ValueError, match="no tick between the reset's stamp 0.0 and the first report's 0.0: give dt"):
+        sensors.report(made_state(0, [False] * 4, config.n_joints))
+
+
+def test_mock_reports_the_imu_and_the_contacts_late_by_their_ticks(config):
+    """In the mock (which gives SensorGap no dt: it learns the tick from the stamps): the IMU sample and the
+    switches lag the joints by the configured ticks, the joints keep sensor.latency_s."""
+    latency, imu, delay = 1, 3, 2
+    gap = RealityGap(sensor_latency_s=latency * config.dt, imu_latency_s=imu * config.dt,
+                     contact_delay_s=delay * config.dt)
+    touch = ("r_toe", "r_heel", "l_toe", "l_heel")
+
+    def switches(mock: MujocoBackend) -> np.ndarray:
+        return np.array([mock.data.sensor(name).data[0] > CONTACT_THRESHOLD_N for name in touch])
+
+    with configured(config, gap) as mock:
+        placed_contact, placed_gyro = switches(mock), mock.data.sensor("imu_gyro").data.copy()
+        times, gyros, contacts, states = [], [], [], []
+        for _ in range(300):  # inactive: the robot folds up and sits down, the switches change
+            states.append(mock.read())
+            times.append(mock.data.time)
+            gyros.append(mock.data.sensor("imu_gyro").data.copy())
+            contacts.append(switches(mock))
+    assert len({tuple(c) for c in contacts}) > 1
+    for i, state in enumerate(states):
+        j, m, c = i - latency, i - latency - imu, i - latency - delay
+        assert state.joints.stamp == state.contacts.stamp == (times[j] if j >= 0 else 0.0)
+        assert state.imu.stamp == (times[m] if m >= 0 else 0.0)
+        np.testing.assert_array_equal(state.imu.gyro, gyros[m] if m >= 0 else placed_gyro)
+        np.testing.assert_array_equal(state.contacts.contact, contacts[c] if c >= 0 else placed_contact)
+
+
 # -- the none profile, the shipped profiles ------------------------------------------------------------------------
 def walk(config, gap: RealityGap | None) -> tuple[np.ndarray, np.ndarray]:
     """A short walk of the policy at 0.4 m/s (1.5 s): every tick's (q, qd, tau) and the final qpos, qvel."""
@@ -320,7 +529,7 @@ def test_default_profile_has_the_documented_values(config):
     ("actuator:\n  latency_s: 0.2\n", "), got 0.2"),
     ("actuator:\n  time_constant_s: 1.0\n", "actuator.time_constant_s: expected a number in [0, 0.05] s"),
     ("actuator:\n  latncy_s: 0.001\n", "actuator.latncy_s: unknown key (expected one of ['latency_s',"),
-    ("actuators:\n  latency_s: 0.001\n", "actuators: unknown key (expected one of ['actuator', 'encoder',"),
+    ("actuators:\n  latency_s: 0.001\n", "actuators: unknown key (expected one of ['actuator', 'contacts', 'encoder',"),
     ("actuator:\n  torque_limit_scale: 1.2\n", "actuator.torque_limit_scale: expected a number in [0.5, 1] ("),
     ("actuator:\n  torque_scale: 1.6\n", "actuator.torque_scale: expected a number in [0.5, 1.5] ("),
     ("actuator:\n  torque_scale: {r_knee: 0.2}\n", "actuator.torque_scale.r_knee: expected a number in [0.5, 1.5]"),
@@ -344,8 +553,22 @@ def test_default_profile_has_the_documented_values(config):
     ("sensor:\n  latency_s: .nan\n", "sensor.latency_s: expected a number in [0, 0.05] s"),
     ("sensor:\n  latency_s: 1.0e+9\n", "sensor.latency_s: expected a number in [0, 0.05] s"),
     ("seed: -1\n", "seed: expected an integer >= 0, got -1"),
-    ("- 1\n", "<top>: expected a mapping with keys among ['actuator', 'encoder', 'friction', 'imu', 'inertia', "
-              "'seed', 'sensor'], got [1]"),
+    ("- 1\n", "<top>: expected a mapping with keys among ['actuator', 'contacts', 'encoder', 'friction', 'imu', "
+              "'inertia', 'seed', 'sensor'], got [1]"),
+    ("contacts:\n  delay_s: 0.1\n", "contacts.delay_s: expected a number in [0, 0.05] s (beyond sensor.latency_s"),
+    ("contacts:\n  delay_s: -0.001\n", "contacts.delay_s: expected a number in [0, 0.05] s"),
+    ("contacts:\n  bounce_s: 0.05\n", "contacts.bounce_s: expected a number in [0, 0.02] s (chatter after each "
+                                      "change"),
+    ("contacts:\n  bounce_s: [0.001]\n", "contacts.bounce_s: expected a number in [0, 0.02] s"),
+    ("contacts:\n  debounce_s: 0.001\n", "contacts.debounce_s: unknown key (expected one of ['bounce_s', 'delay_s'])"),
+    ("contacts: 0.003\n", "contacts: expected a mapping with keys among ['bounce_s', 'delay_s'], got 0.003"),
+    ("imu:\n  latency_s: .inf\n", "imu.latency_s: expected a number in [0, 0.05] s (beyond sensor.latency_s"),
+    ("imu:\n  latency_s: -0.003\n", "imu.latency_s: expected a number in [0, 0.05] s"),
+    ("encoder:\n  q_resolution: 0.1\n", "encoder.q_resolution: expected a number in [0, 0.01] rad (0.6 deg per "
+                                        "count"),
+    ("encoder:\n  q_resolution: {r_knee: -1.0e-3}\n", "encoder.q_resolution.r_knee: expected a number in [0, "
+                                                      "0.01] rad"),
+    ("encoder:\n  q_resolution: {knee: 1.0e-3}\n", "encoder.q_resolution.knee: unknown joint (expected one of"),
 ])
 def test_bad_profile_names_the_file_and_the_key(config, tmp_path, text, message):
     path = tmp_path / "foo.yaml"
@@ -353,6 +576,7 @@ def test_bad_profile_names_the_file_and_the_key(config, tmp_path, text, message)
     with pytest.raises(ValueError) as error:
         load_gap(path, config.joints)
     assert str(error.value).startswith(f"{path}: ") and message in str(error.value)
+    assert "\n" not in str(error.value)
 
 
 def test_unknown_profile_and_missing_file_are_named(tmp_path):
@@ -368,6 +592,9 @@ def test_gap_built_in_code_is_checked_too(config):
         RealityGap(actuator_latency_s=-0.001)
     with pytest.raises(GapError, match=r"friction.viscous.knee: unknown joint"):
         configured(config, RealityGap(viscous={"knee": 0.1}))
+    with pytest.raises(GapError, match=r"^RealityGap: contacts.bounce_s: expected a number in \[0, 0.02\] s .*, "
+                                       r"got 0.5$"):
+        RealityGap(contact_bounce_s=0.5)
     assert replace(load_gap("default"), seed=5).seed == 5
 
 

@@ -234,7 +234,7 @@ def test_an_interrupted_suite_resumes_and_a_finished_one_runs_nothing(tmp_path, 
 
     args = ["transfer", "--gap", "default,none", "--out", str(tmp_path / "out"), "--seconds", "2.6", "--seeds",
             "0,1,2", "--experiments", "tracking,circle", "--latencies-ms", "0,4", "--sweep-seeds", "0",
-            "--gain-scales", "", "--schemes", "shadow", "--jobs", "1"]
+            "--gain-scales", "", "--schemes", "shadow", "--jobs", "1", "--estimator", "truth"]  # issue 20's bars
     monkeypatch.setattr(transfer_eval, "run_one", interrupted)
     with pytest.raises(KeyboardInterrupt):
         eval_main(args)
@@ -287,3 +287,18 @@ def test_bruce_eval_transfer_runs_without_torch_or_matplotlib(tmp_path):
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert (tmp_path / "transfer.json").exists() and "no figures (matplotlib is not installed" in done.stdout
+
+
+@pytest.mark.parametrize("fall_time", [None, 7.25])
+def test_a_cached_record_reads_back_with_its_fall(tmp_path, fall_time):
+    """A resumed suite reads the kept records back (a run that fell among them)."""
+    from training.evaluation.transfer_cache import RunCache
+
+    t = np.arange(0, 1.0, DT)
+    kept = record(t, xy=np.zeros((len(t), 2)))
+    kept.fell, kept.fall_time = fall_time is not None, fall_time
+    cache = RunCache(tmp_path)
+    cache.save_record("k", kept)
+    back = cache.record("k", kept.spec, transfer_eval.RunRecord)
+    assert back.fell is kept.fell and back.fall_time == fall_time
+    np.testing.assert_array_equal(back.xy, kept.xy)

@@ -57,7 +57,7 @@ def _profiles(shadow=None, seeds=3, none_rmse=0.005, mass_rmse=0.05, shadow_late
 
 
 def test_a_scheme_that_clears_every_bar_is_recommended_and_each_bar_is_written():
-    table = acceptance(_profiles(), MODES)
+    table = acceptance(_profiles(), MODES, "truth")
     assert recommended(table) == "shadow"  # Eq. 9 and the perfect-model control are better, never recommended
     bars = table["shadow"]
     assert set(bars) == {"tracking", "circle", "no_new_falls", "none", "one_factor:mass_1p2", "latency"}
@@ -77,18 +77,31 @@ def test_a_scheme_that_clears_every_bar_is_recommended_and_each_bar_is_written()
     ({"shadow_latency_falls": (0, 1, 1)}, "latency"),          # falls at a latency direct walks through
 ])
 def test_each_bar_failed_alone_withholds_the_recommendation(change, failed):
-    table = acceptance(_profiles(**change), MODES)
+    table = acceptance(_profiles(**change), MODES, "truth")
     assert recommended(table) is None
     assert not table["shadow"][failed]["pass"]
     assert table["shadow"][failed]["value"] is not None
 
 
+@pytest.mark.parametrize("tracking, circle, passed", [
+    (0.025, 0.075, True),    # a quarter of direct's tracking, three quarters of its path
+    (0.026, 0.075, False),
+    (0.025, 0.076, False),
+])
+def test_a_robot_faithful_rehearsal_is_held_to_issue_33s_bars(tracking, circle, passed):
+    table = acceptance(_profiles(shadow={"tracking": tracking, "circle": circle}), MODES, "kinematic")
+    assert table["shadow"]["tracking"]["limit"] == pytest.approx(0.025)
+    assert table["shadow"]["circle"]["limit"] == pytest.approx(0.075)
+    assert (recommended(table) == "shadow") is passed
+    assert acceptance(_profiles(), MODES) == acceptance(_profiles(), MODES, "kinematic")  # robot-faithful by default
+
+
 def test_the_ideal_circle_is_not_the_circle_bar_and_missing_data_is_not_a_pass():
     profiles = _profiles()
     profiles["default"]["circle"]["shadow"]["mean_radial_deviation"] = 1.0  # far off the ideal circle
-    assert recommended(acceptance(profiles, MODES)) == "shadow"
+    assert recommended(acceptance(profiles, MODES, "truth")) == "shadow"
     del profiles["default"]["circle"]
-    assert recommended(acceptance(profiles, MODES)) is None  # the circle bar is needed
+    assert recommended(acceptance(profiles, MODES, "truth")) is None  # the circle bar is needed
     assert latency_tolerance(profiles["default"]["sweeps"]["latency"], "direct") == 6.0
     assert latency_tolerance([{"latency_ms": 4.0, "direct": {"falls": 1}}], "direct") is None
 
@@ -97,14 +110,15 @@ def test_every_scheme_and_its_perfect_model_control_run_side_by_side(tmp_path):
     out = tmp_path / "transfer"
     code = eval_main(["transfer", "--gap", "none", "--out", str(out), "--seconds", "2.6", "--seeds", "0",
                       "--experiments", "tracking,circle", "--latencies-ms", "", "--gain-scales", "",
-                      "--schemes", "shadow,observer@nominal", "--jobs", "1"])
+                      "--schemes", "shadow,observer@nominal", "--jobs", "1", "--estimator", "truth"])
     assert code == 0
     report = json.loads((out / "transfer.json").read_text())
     assert report["meta"]["modes"] == ["direct", "shadow", "observer@nominal"] and "recommended" in report
     for mode in ("direct", "shadow", "observer@nominal"):
         for name in ("tracking", "circle"):
             assert report[name][mode]["seeds"] == 1 and report[name][mode]["falls"] == 0
-    # the null test: on a robot that is the simulator, a scheme whose model is the simulator changes nothing
+    # the null test: on a robot that is the simulator, a scheme whose model is the simulator changes nothing (fed the
+    # simulator's truth: the perfect model then starts from the exact base state)
     assert report["tracking"]["direct"]["joint_rmse"] == 0.0
     assert report["tracking"]["observer@nominal"]["joint_rmse"] < 2e-3
     assert "| tracking | joint RMSE (rad) |" in (out / "transfer.md").read_text()

@@ -10,10 +10,13 @@ from bruce_hw.config import ConfigError, PdGains, load_config, parse_config
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.types import JointCommand
 from runtime.inference import ModelError
+from runtime.kinematic_estimator import KinematicEstimator
 from runtime.mixing import eq8_torque
+from runtime.nominal_twin import TwinInput
 from runtime.reference_models import NominalReference
 from runtime.transfer_gains import joint_inertia, observer_gain, pd_crossover, pd_gains, shortest_observer_time_constant
 from runtime.transfer_schemes import Eq9Scheme, ObserverScheme, ShadowScheme, TransferScheme, TwinScheme, build_scheme
+from runtime.twin_runner import InlineTwinRunner, ThreadTwinRunner, TwinIntegral
 
 DT = 1e-3
 
@@ -261,10 +264,12 @@ def test_build_scheme_reads_the_config_and_pinn_means_eq9():
         build_scheme(config, "eq10")
 
 
-def test_the_perfect_model_needs_a_simulators_base_state():
+def test_the_perfect_model_needs_a_base_state_from_the_estimator_or_the_truth():
     config = load_config(overrides=["transfer.reference_model=nominal"])
-    with pytest.raises(ModelError, match="only the mock backend"):
-        build_scheme(config, "observer", base_state=lambda: None)
+    with pytest.raises(ModelError, match="needs the robot's base state, from the run's estimator"):
+        build_scheme(config, "observer")
+    scheme = build_scheme(config, "observer", estimator=KinematicEstimator(config))  # what a robot has: enough
+    assert isinstance(scheme.reference, NominalReference)
 
 
 def test_the_nominal_reference_predicts_the_nominal_mock_exactly():
@@ -364,42 +369,50 @@ class ScriptedTwin:
     def __init__(self, postures):
         self.postures = [np.array(p, float) for p in postures]
         self.q = None
-        self.advanced = []
+        self.advanced: list[TwinInput] = []
         self.resets = 0
-        self.resync_requested = False
 
     def reset(self):
         self.resets += 1
         self.q = None
 
-    def advance(self, a, q, qd, command, last_torque):
-        self.advanced.append((a, command, None if last_torque is None else last_torque.copy(), q.copy()))
+    def advance(self, step: TwinInput):
+        self.advanced.append(step)
         self.q = self.postures.pop(0)
+
+
+RESYNC = object()  # what the scripted schemes resynchronise from
+
+
+def scripted_scheme(inner, twin, gain, clip, hold_ticks, disturbance=np.inf, lag=0, resync_ticks=1000):
+    integral = TwinIntegral(twin, np.array(gain, float), np.array(clip, float), hold_ticks, disturbance)
+    return TwinScheme(inner, InlineTwinRunner(integral, lag), lambda: RESYNC, resync_ticks, decimation=1)
 
 
 def test_twin_integrates_the_posture_offset_from_the_twin_clips_holds_and_resets():
     twin = ScriptedTwin([[0.1, 0.1], [0.3, -0.2], [0.5, -0.2], [0.0, 0.0], [0.0, 0.0]])
-    scheme = TwinScheme(TransferScheme(), twin, gain=np.array([2.0, 2.0]), clip=np.array([0.5, 10.0]), hold_ticks=1)
-    scheme.reset()
+    scheme = scripted_scheme(TransferScheme(), twin, gain=[2.0, 2.0], clip=[0.5, 10.0], hold_ticks=1)
     tau_star, command = np.array([1.0, -1.0]), np.array([0.4, 0.0, 0.0])
     q = np.zeros(2)
     scheme.predict(np.zeros(2), q, q, tau_star, command)  # no twin posture yet: nothing to integrate
+    assert twin.advanced[0].resync is RESYNC  # the first tick sets the twin to the robot
     np.testing.assert_array_equal(scheme.torque(tau_star, q, q), tau_star)
     scheme.predict(np.zeros(2), q, q, tau_star, command)  # offset 0.1, 0.1 from the twin: u = 2 * offset
     np.testing.assert_allclose(scheme.u, [0.2, 0.2])
     np.testing.assert_allclose(scheme.torque(tau_star, q, q), [1.2, -0.8])  # tau* + u
     scheme.predict(np.zeros(2), np.array([0.1, 0.0]), q, tau_star, command)  # offset 0.2, -0.2: adds 0.4, -0.4
     np.testing.assert_allclose(scheme.u, [0.5, -0.2])  # 0.6 clipped to 0.5
-    np.testing.assert_allclose(twin.advanced[-1][2], [1.2, -0.8])  # the twin's rate limit starts from what was sent
-    assert twin.advanced[-1][1] is command  # the twin runs on the robot's command
+    np.testing.assert_allclose(twin.advanced[-1].sent, [1.2, -0.8])  # the twin's rate limit starts from what was sent
+    np.testing.assert_array_equal(twin.advanced[-1].command, command)  # the twin runs on the robot's command
+    assert all(step.resync is None for step in twin.advanced[1:])
+    resets = twin.resets
     scheme.reset()
-    assert not scheme.u.any() and twin.resets == 2 and twin.q is None
+    assert not scheme.u.any() and twin.resets == resets + 1 and twin.q is None
 
 
 def test_twin_holds_its_torque_until_the_hold_ends():
     twin = ScriptedTwin([[1.0]] * 5)
-    scheme = TwinScheme(TransferScheme(), twin, gain=np.array([1.0]), clip=np.array([10.0]), hold_ticks=3)
-    scheme.reset()
+    scheme = scripted_scheme(TransferScheme(), twin, gain=[1.0], clip=[10.0], hold_ticks=3)
     for _ in range(3):
         scheme.predict(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1))
         assert scheme.u[0] == 0.0
@@ -407,27 +420,35 @@ def test_twin_holds_its_torque_until_the_hold_ends():
     assert scheme.u[0] == pytest.approx(1.0)
 
 
+def test_the_torque_uses_the_integral_lag_ticks_old():
+    twin = ScriptedTwin([[1.0]] * 8)
+    scheme = scripted_scheme(TransferScheme(), twin, gain=[1.0], clip=[10.0], hold_ticks=0, lag=3)
+    u = []
+    for _ in range(8):
+        scheme.predict(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1))
+        u.append(scheme.u[0])
+    # the integral after tick t is t (offset 1 per tick from tick 1 on); the torque at tick t uses the one at t - 3
+    assert u == [0.0, 0.0, 0.0, 0.0, 1.0, 2.0, 3.0, 4.0]
+
+
 def test_an_offset_beyond_the_disturbance_bound_is_not_integrated_and_resyncs_the_twin():
     twin = ScriptedTwin([[0.05], [0.5], [0.05], [0.05]])
-    scheme = TwinScheme(TransferScheme(), twin, gain=np.array([1.0]), clip=np.array([10.0]), hold_ticks=0,
-                        disturbance=0.3)
-    scheme.reset()
+    scheme = scripted_scheme(TransferScheme(), twin, gain=[1.0], clip=[10.0], hold_ticks=0, disturbance=0.3)
     zero = np.zeros(1)
     scheme.predict(zero, zero, zero, zero)
     scheme.predict(zero, zero, zero, zero)  # offset 0.05: a gap, integrated
-    assert scheme.u[0] == pytest.approx(0.05) and not twin.resync_requested
+    assert scheme.u[0] == pytest.approx(0.05) and twin.advanced[-1].resync is None
     scheme.predict(zero, zero, zero, zero)  # offset 0.5: a push the twin did not feel
-    assert scheme.u[0] == pytest.approx(0.05) and twin.resync_requested
-    scheme.predict(zero, zero, zero, zero)
-    assert scheme.u[0] == pytest.approx(0.10)
+    assert scheme.u[0] == pytest.approx(0.05)
+    scheme.predict(zero, zero, zero, zero)  # the next policy tick resynchronises the twin
+    assert twin.advanced[-1].resync is RESYNC and scheme.u[0] == pytest.approx(0.10)
 
 
 def test_shadow_twin_adds_the_integral_to_the_shadows_pd():
     model = RecordingModel([([0.01, 0.02], [0.1, 0.2]), ([0.0, 0.0], [0.0, 0.0])])
     shadow = ShadowScheme(model, GAINS, EQ8, resync_ticks=5)
     twin = ScriptedTwin([[0.1, 0.0], [0.0, 0.0]])
-    scheme = TwinScheme(shadow, twin, gain=np.array([1.0, 1.0]), clip=np.array([5.0, 5.0]), hold_ticks=0)
-    scheme.reset()
+    scheme = scripted_scheme(shadow, twin, gain=[1.0, 1.0], clip=[5.0, 5.0], hold_ticks=0)
     a, q, qd, tau_star = np.array([0.5, -0.5]), np.zeros(2), np.zeros(2), np.array([2.0, 2.0])
     scheme.predict(a, q, qd, tau_star)
     scheme.torque(tau_star, q, qd)
@@ -436,9 +457,10 @@ def test_shadow_twin_adds_the_integral_to_the_shadows_pd():
     assert scheme.q_hat is shadow.q_hat and scheme.name == "shadow_twin"
 
 
-def run_with_twin(config, gap, ticks):
+def run_with_twin(config, gap, ticks, faithful=False):
     """The run loop's stages by hand (read, policy every 10th tick, Eq. 8, the scheme, safety, write) with the `twin`
-    scheme; per tick the twin's posture error and the integral."""
+    scheme, its twin resynchronised from the simulator's truth or (`faithful`) from the robot's kinematic estimator;
+    per tick the twin's posture error and the integral."""
     from runtime.controllers import build_controller
     from runtime.estimation import GroundTruthEstimator
     from runtime.safety import SafetyStage
@@ -446,17 +468,20 @@ def run_with_twin(config, gap, ticks):
     backend = MujocoBackend(config, gap=gap)
     backend.configure()
     controller, _ = build_controller(config, None, "policy")
-    estimator = GroundTruthEstimator(backend)
+    estimator = KinematicEstimator(config) if faithful else GroundTruthEstimator(backend)
     safety = SafetyStage(config)
-    scheme = build_scheme(config, "twin", base_state=backend.ground_truth)
+    scheme = build_scheme(config, "twin", base_state=None if faithful else backend.ground_truth, estimator=estimator)
     backend.activate()
-    controller.reset(backend.ground_truth().joint_q)
+    state = backend.read()
+    controller.reset(state.joints.q)
+    estimator.reset(state)
     scheme.reset()
     command = np.array([0.3, 0.0, 0.0])
     offsets, integral = [], []
     for tick in range(ticks):
         state = backend.read()
         q, qd = state.joints.q, state.joints.qd
+        estimator.update(state)
         if tick % config.policy_decimation == 0:
             a = controller(state, estimator.estimate(), command)
         if scheme.twin.q is not None:
@@ -471,9 +496,25 @@ def run_with_twin(config, gap, ticks):
 def test_where_the_robot_is_the_simulator_the_twin_is_the_robot_and_adds_no_torque():
     config = load_config(overrides=["transfer.twin.resync_s=0.1"])
     offsets, integral, scheme = run_with_twin(config, None, 400)
-    assert scheme.twin.tick == 400 and scheme.hold_ticks == 100  # three resyncs after the hold were exercised
+    assert scheme.twin.tick == 399 and scheme.runner.integral.hold_ticks == 100  # resyncs after the hold ran
+    assert scheme.resyncs == 4
     assert offsets.max() < 1e-9  # the twin reproduces the nominal mock, torque ramp and rate limit included
     assert integral.max() < 1e-12  # N·m: rounding
+
+
+def test_a_twin_resynchronised_from_the_estimator_stays_with_the_simulator():
+    """Robot-faithful: the twin is set from the robot's estimate, not its truth (the base's height, yaw and
+    position are the twin's own, its attitude the estimator's): it no longer reproduces the robot to rounding, but
+    stays within 25 mrad of it over 2 s of walking with 0.5 s between resyncs, where the gap's offsets reach tenths
+    of a rad."""
+    config = load_config(overrides=["transfer.twin.resync_s=0.5"])
+    offsets, integral, scheme = run_with_twin(config, None, 2000, faithful=True)
+    assert scheme.resyncs == 4 and not scheme.twin.from_truth
+    assert 0.0 < offsets.max() < 0.025
+    from bruce_hw.reality_gap import load_gap
+
+    gapped, _, _ = run_with_twin(config, load_gap("default"), 2000, faithful=True)
+    assert gapped.max() > 2.5 * offsets.max()
 
 
 def test_with_a_gap_the_twin_sees_an_offset_and_the_integral_acts_within_its_clip():
@@ -481,24 +522,31 @@ def test_with_a_gap_the_twin_sees_an_offset_and_the_integral_acts_within_its_cli
 
     config = load_config(overrides=["transfer.twin.resync_s=0.1", "transfer.twin.time_constant_s=1"])
     offsets, integral, scheme = run_with_twin(config, load_gap("default"), 400)
+    lag = config.transfer.twin_lag_ticks
     assert offsets.max() > 1e-3
-    assert not integral[:100].any() and integral[-1] > 0.0  # held until the first resync after the torque ramp
-    assert np.all(np.abs(scheme.u) <= scheme.clip)
+    # held until the first resync after the torque ramp, and read lag_ticks late
+    assert not integral[:100 + lag].any() and integral[-1] > 0.0
+    assert np.all(np.abs(scheme.u) <= scheme.runner.integral.clip)
 
 
-def test_build_twin_schemes_read_the_config_and_need_the_mock():
+def test_build_twin_schemes_read_the_config_and_resync_from_the_estimator_or_the_truth():
     config = load_config(overrides=["transfer.twin.resync_s=0.5", "transfer.twin.time_constant_s=4",
-                                    "transfer.twin.clip=0.1"])
+                                    "transfer.twin.clip=0.1", "transfer.twin.lag_ticks=7"])
     backend = MujocoBackend(config)
     backend.configure()
-    twin = build_scheme(config, "twin", base_state=backend.ground_truth)
+    estimator = KinematicEstimator(config)
+    twin = build_scheme(config, "twin", estimator=estimator)
     assert isinstance(twin, TwinScheme) and type(twin.inner) is TransferScheme and twin.name == "twin"
-    assert twin.twin.resync_ticks == 500 and twin.hold_ticks == 500
-    np.testing.assert_allclose(twin.gain, config.eq8.kp * config.dt / 4.0)
-    np.testing.assert_allclose(twin.clip, 0.1 * config.tau_limit)
-    assert isinstance(build_scheme(config, "shadow_twin", base_state=backend.ground_truth).inner, ShadowScheme)
-    with pytest.raises(ModelError, match="only the mock"):
-        build_scheme(config, "twin", base_state=lambda: None)
+    assert twin.resync_ticks == 500 and twin.runner.integral.hold_ticks == 500 and twin.runner.lag == 7
+    assert twin.resync_state == estimator.snapshot  # what a robot has
+    assert isinstance(twin.runner, InlineTwinRunner) and not isinstance(twin.runner, ThreadTwinRunner)
+    np.testing.assert_allclose(twin.runner.integral.gain, config.eq8.kp * config.dt / 4.0)
+    np.testing.assert_allclose(twin.runner.integral.clip, 0.1 * config.tau_limit)
+    paced = build_scheme(config, "shadow_twin", estimator=estimator, paced=True)
+    assert isinstance(paced.inner, ShadowScheme) and isinstance(paced.runner, ThreadTwinRunner)
+    assert build_scheme(config, "twin", base_state=backend.ground_truth).resync_state == backend.ground_truth
+    with pytest.raises(ModelError, match="resynchronised from the kinematic estimator's state"):
+        build_scheme(config, "twin", estimator=object())
     with pytest.raises(ConfigError, match=r"transfer\.twin\.time_constant_s: expected a number in \[1, 60\] s"):
         load_config(overrides=["transfer.twin.time_constant_s=0.5"])
     with pytest.raises(ConfigError, match=r"transfer\.twin\.clip: expected a number in \(0, 1\]"):

@@ -225,7 +225,8 @@ def rollout(config: RobotConfig, settings: DistillSettings, rng: np.random.Gener
         with contextlib.redirect_stdout(io.StringIO()):  # run_session's per-run banner and summary
             summary = run_session(backend, config, duration=settings.episode_s, realtime=False,
                                   controller=controller, estimator="kinematic" if kinematic else "truth",
-                                  commands=commands, observers=[pushes, FallStop()])
+                                  commands=commands, observers=[pushes, FallStop()],
+                                  privileged=True)  # the teacher labels from the simulator's truth
     finally:
         runtime_log.setLevel(saved_level)
     if summary.stop_cause in INTERRUPTS:

@@ -21,8 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-CACHE_VERSION = 1
-NOISE_FIELDS = ("q_noise", "qd_noise", "gyro_noise", "accel_noise", "orientation_noise")  # what the seed draws
+CACHE_VERSION = 2  # 2: robot-faithful runs (the twin resynchronised from the estimator, read lag_ticks late)
+NOISE_FIELDS = ("q_noise", "qd_noise", "gyro_noise", "accel_noise", "orientation_noise",
+                "contact_bounce_s")  # what the seed draws
 RECORD_ARRAYS = ("t", "q", "qd", "tau", "xy", "yaw", "velocity")
 
 
@@ -76,7 +77,7 @@ class RunCache:
             return None
         with np.load(path, allow_pickle=False) as data:
             arrays = {name: data[name] for name in RECORD_ARRAYS}
-            fall_time = float(data["fall_time"]) if data["fall_time"].size else None
+            fall_time = float(data["fall_time"][0]) if data["fall_time"].size else None  # stored as [] or [t]
             return record_type(spec=spec, fell=bool(data["fell"]), stop_cause=str(data["stop_cause"]),
                                fall_time=fall_time, **arrays)
 

@@ -1,0 +1,167 @@
+"""Where the nominal twin runs, and the integral it feeds (`TwinIntegral`).
+
+The twin scheme's integral has a time constant of seconds, so the twin's answer for tick k may arrive a few ticks
+late without changing what the integral does. The control thread posts each tick's `TwinInput` and reads the
+integral as it stood `lag_ticks` ago (`transfer.twin.lag_ticks`):
+
+- `InlineTwinRunner`: the twin steps on the control thread as the input is posted. Runs that are not paced (the
+  rehearsal) use it: the result is the same on any machine.
+- `ThreadTwinRunner`: the twin steps on a thread of its own; the control thread's share is a queue put and a
+  read. Paced runs (`--backend hw`, a paced mock) use it: the control thread never waits for the twin. MuJoCo's
+  step and onnxruntime release the GIL, so the twin's physics and policy run beside the loop on the other core.
+  Told to `wait` (tests), the control thread waits for exactly the lagged tick, so a threaded run reproduces an
+  inline one bit for bit.
+
+A twin that falls more than `MAX_BACKLOG_TICKS` behind (a paced run on a starved machine) is not posted to: the
+integral holds, and the twin is resynchronised at the next policy tick once it has caught up (`TwinScheme`).
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+
+import numpy as np
+
+from runtime.inference import ModelError
+from runtime.nominal_twin import NominalTwin, TwinInput
+
+MAX_BACKLOG_TICKS = 200  # 0.2 s: beyond it the twin's offsets are too old to integrate on a 2 s time constant
+
+
+class TwinIntegral:
+    """u <- clip(u + gain (q_twin - q), +- clip) on every tick from `hold_ticks` on; an offset above `disturbance`
+    on any joint is a push the twin did not feel: not integrated, and a resync is asked for (`step`'s result)."""
+
+    def __init__(self, twin: NominalTwin, gain: np.ndarray, clip: np.ndarray, hold_ticks: int,
+                 disturbance: float = np.inf):
+        self.twin = twin
+        self.gain, self.clip, self.hold_ticks = gain, clip, hold_ticks  # gain: N·m per rad of offset, per tick
+        self.disturbance = disturbance
+        self.reset()
+
+    def reset(self) -> None:
+        self.twin.reset()
+        self.u = np.zeros_like(self.gain)
+        self._last_tick = -2
+
+    def step(self, step: TwinInput) -> bool:
+        """Compare the twin's posture predicted for this tick with the measured one, integrate, advance the twin;
+        True when the offset looks like a push (resync wanted). A tick after a gap in the input (the twin fell
+        behind) is not compared: the twin's posture is from before the gap."""
+        request = False
+        if self.twin.q is not None and step.tick == self._last_tick + 1:
+            offset = self.twin.q - step.q
+            if np.abs(offset).max() > self.disturbance:
+                request = True  # integrated, a push would be pulled back along the twin's path
+            elif step.tick >= self.hold_ticks:
+                self.u = np.clip(self.u + self.gain * offset, -self.clip, self.clip)
+        self._last_tick = step.tick
+        self.twin.advance(step)
+        return request
+
+
+class InlineTwinRunner:
+    """The twin on the control thread; the integral read `lag_ticks` late, as the threaded runner reads it."""
+
+    def __init__(self, integral: TwinIntegral, lag_ticks: int):
+        self.integral, self.lag = integral, lag_ticks
+        self._ring = [np.zeros_like(integral.gain)] * (lag_ticks + 1)  # u after tick t at t % len
+        self.reset()
+
+    def reset(self) -> None:
+        self.integral.reset()
+        self._ring = [np.zeros_like(self.integral.gain)] * len(self._ring)
+        self.done = -1           # the last tick the twin has stepped
+        self.posted = -1         # the last tick posted
+        self.request_tick = -1   # the last tick whose offset asked for a resync
+
+    def start(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def post(self, step: TwinInput) -> None:
+        self.posted = step.tick
+        self._publish(step.tick, self.integral.step(step))
+
+    def _publish(self, tick: int, request: bool) -> None:
+        self._ring[tick % len(self._ring)] = self.integral.u  # the integral replaces u, never writes into it
+        if request:
+            self.request_tick = tick
+        self.done = tick
+
+    def backlog(self) -> int:
+        """Ticks posted and not yet stepped."""
+        return self.posted - self.done
+
+    def u_at(self, tick: int) -> np.ndarray:
+        """The integral as it stood after tick `tick - lag` (or the latest the twin has reached, if behind)."""
+        have = min(self.done, tick - self.lag)
+        return self._ring[have % len(self._ring)] if have >= 0 else self._ring[-1] * 0.0
+
+    def resync_asked(self, since: int, tick: int) -> bool:
+        """Whether an offset after tick `since` and no later than `tick - lag` asked for a resync."""
+        return since < self.request_tick <= tick - self.lag
+
+
+class ThreadTwinRunner(InlineTwinRunner):
+    """The twin on a thread of its own. `wait`: `u_at` waits for the lagged tick (reproducible, for tests);
+    otherwise it never waits."""
+
+    def __init__(self, integral: TwinIntegral, lag_ticks: int, wait: bool = False):
+        self.wait = wait
+        self._inputs: queue.SimpleQueue = queue.SimpleQueue()
+        self._stepped = threading.Condition()
+        self._thread: threading.Thread | None = None
+        self.error: BaseException | None = None
+        super().__init__(integral, lag_ticks)
+
+    def reset(self) -> None:
+        self.close()  # the worker's queue and state go with it
+        self.error = None
+        super().reset()
+
+    def start(self) -> None:
+        if self._thread is None:
+            self._inputs = queue.SimpleQueue()
+            self._thread = threading.Thread(target=self._work, args=(self._inputs,), name="nominal-twin",
+                                            daemon=True)
+            self._thread.start()
+
+    def close(self) -> None:
+        if self._thread is not None:
+            self._inputs.put(None)
+            self._thread.join(timeout=2.0)
+            self._thread = None
+
+    def post(self, step: TwinInput) -> None:
+        if self.error is not None:
+            raise ModelError(f"nominal twin: {type(self.error).__name__}: {self.error}")
+        self.start()
+        self.posted = step.tick
+        self._inputs.put(step)
+
+    def _work(self, inputs: queue.SimpleQueue) -> None:
+        while (step := inputs.get()) is not None:
+            try:
+                request = self.integral.step(step)
+            except BaseException as exc:  # reported on the control thread at its next post
+                self.error = exc
+                with self._stepped:
+                    self._stepped.notify_all()
+                return
+            self._publish(step.tick, request)
+            if self.wait:
+                with self._stepped:
+                    self._stepped.notify_all()
+
+    def u_at(self, tick: int) -> np.ndarray:
+        if self.wait:
+            wanted = min(tick - self.lag, self.posted)
+            with self._stepped:
+                self._stepped.wait_for(lambda: self.done >= wanted or self.error is not None, timeout=5.0)
+            if self.error is not None:
+                raise ModelError(f"nominal twin: {type(self.error).__name__}: {self.error}")
+        return super().u_at(tick)
