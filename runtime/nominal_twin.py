@@ -67,6 +67,7 @@ class NominalTwin:
         self.eq8 = config.eq8
         self.decimation = config.policy_decimation
         self.standing_pose = config.standing_pose
+        self.differential = True  # resync the base by the estimates' difference (place_from_estimate's `own`)
         self.reset()
 
     def reset(self) -> None:
@@ -91,8 +92,12 @@ class NominalTwin:
                 set_state(data, self._qpos, self._dofs, resync, step.q, step.qd)
                 mujoco.mj_forward(self.model, data)
             else:
+                own = None
+                if not first and not self.from_truth and self.differential:
+                    self.estimator.update(self.backend._measure())  # the twin's own estimate at this tick
+                    own = self.estimator.estimate()
                 place_from_estimate(self.model, data, self._qpos, self._dofs, resync.estimate, step.q, step.qd,
-                                    self._spheres)
+                                    self._spheres, own)
                 self.estimator.restore(resync, float(data.time))
             self.from_truth = isinstance(resync, GroundTruth)
             if step.sent is not None:

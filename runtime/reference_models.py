@@ -78,22 +78,35 @@ def lowest_point(data: mujoco.MjData, spheres: list[tuple[int, float]]) -> float
 
 def place_from_estimate(model: mujoco.MjModel, data: mujoco.MjData, qpos: slice, dofs: slice,
                         estimate: BaseEstimate, q: np.ndarray, qd: np.ndarray,
-                        spheres: list[tuple[int, float]]) -> None:
-    """Put the nominal model at what a robot knows of itself: the joints as measured, roll and pitch from its
-    estimate, the base's angular and linear velocity from its estimate; yaw and planar position stay the model's own
+                        spheres: list[tuple[int, float]], own: BaseEstimate | None = None) -> None:
+    """Put the nominal model at what a robot knows of itself: the joints as measured; roll, pitch and the base's
+    angular and linear velocity (body frame) from the robot's estimate; yaw and planar position stay the model's own
     (nothing on the robot observes them), and the height is set so that the lowest toe or heel (`spheres`, from
     `foot_spheres`) keeps the model's own contact depth: the new posture neither sinks a foot into the floor nor
-    lifts the stance off it. Ends with mj_forward."""
+    lifts the stance off it. Ends with mj_forward.
+
+    `own`: the model's own estimator's estimate at this tick, from the model's own sensors (the twin runs one). Then
+    the base is the model's own state moved by the difference of the two estimates (robot's minus own): what the
+    two estimators share, above all their lag behind a walking gait's velocity swings, cancels, and where the
+    robot is the model the base is left as it is."""
     depth = lowest_point(data, spheres)
-    roll, pitch, _ = estimate.euler
-    yaw = float(euler_of(data.qpos[3:7])[2])
-    w, x, y, z = roll_pitch_quaternion(float(roll), float(pitch))
+    roll, pitch, _ = (float(v) for v in estimate.euler)
+    angvel = np.asarray(estimate.angvel, dtype=float)
+    linvel = np.asarray(estimate.linvel, dtype=float)
+    true_roll, true_pitch, yaw = (float(v) for v in euler_of(data.qpos[3:7]))
+    if own is not None:
+        rotation = np.array(rotation_entries(data.qpos[3:7])).reshape(3, 3)
+        roll += true_roll - float(own.euler[0])
+        pitch += true_pitch - float(own.euler[1])
+        angvel = angvel + data.qvel[3:6] - np.asarray(own.angvel, dtype=float)
+        linvel = linvel + rotation.T @ data.qvel[0:3] - np.asarray(own.linvel, dtype=float)
+    w, x, y, z = roll_pitch_quaternion(roll, pitch)
     cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
     quat = (cy * w - sy * z, cy * x - sy * y, cy * y + sy * x, cy * z + sy * w)  # q_z(yaw) q_y(pitch) q_x(roll)
     data.qpos[3:7] = quat
     data.qpos[qpos], data.qvel[dofs] = q, qd
-    data.qvel[3:6] = estimate.angvel  # a free joint's angular velocity is in the body frame, as the estimate's
-    data.qvel[0:3] = np.array(rotation_entries(quat)).reshape(3, 3) @ np.asarray(estimate.linvel, dtype=float)
+    data.qvel[3:6] = angvel  # a free joint's angular velocity is in the body frame, as the estimate's
+    data.qvel[0:3] = np.array(rotation_entries(quat)).reshape(3, 3) @ linvel
     mujoco.mj_kinematics(model, data)
     data.qpos[2] += depth - lowest_point(data, spheres)
     mujoco.mj_forward(model, data)
