@@ -160,6 +160,7 @@ class TransferConfig:
     twin_clip: float = 0.25              # share of joints.torque_limits
     twin_disturbance_rad: float = 0.3    # a larger offset from the twin is a push, not a gap: resync, not integrated
     twin_lag_ticks: int = 10             # the integral acts on the twin's offset this many ticks old (its own thread)
+    twin_command_time_constant_s: float = 0.0  # > 0: the twin's command correction settles this slowly; 0: off
     gap_monitor_window_s: float = 0.1
     gap_monitor_warn_rms: float = 2.0    # rad/s
 
@@ -267,6 +268,7 @@ BOUNDS: dict[str, Bound] = {
     "transfer.twin.disturbance_rad": Bound(0.01, 3.0, "rad", "offset from the twin taken as a push"),
     "transfer.twin.lag_ticks": Bound(0, 200, "ticks", "the twin's answer may be this late: 0.2 s beside T >= 1 s",
                                      integer=True),
+    "transfer.twin.command_time_constant_s": Bound(0.0, 60.0, "s", "command correction settling; 0: off"),
     "transfer.gap_monitor.window_s": Bound(0.005, 10.0, "s", "RMS window of the one-step residual"),
     "transfer.gap_monitor.warn_rms": Bound(0.0, 100.0, "rad/s", "window RMS that logs a warning", low_open=True),
     "buses.*.baud": Bound(9600, 12_000_000, "bit/s", "UART rates up to the FTDI's 12 Mbaud", integer=True),

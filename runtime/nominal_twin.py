@@ -50,6 +50,7 @@ class TwinInput:
     command: np.ndarray           # (vx, vy, yaw rate) in force
     sent: np.ndarray | None       # the torque the robot was sent last tick (the rate limit starts from it at a resync)
     resync: EstimatorSnapshot | GroundTruth | None = None  # set the twin to the robot at this tick
+    velocity: np.ndarray | None = None  # the robot's estimated (vx, vy, yaw rate), body frame, on policy ticks
 
 
 class NominalTwin:
@@ -78,6 +79,7 @@ class NominalTwin:
         self.from_truth = False   # the last resync was from the simulator's truth (diagnostic runs)
         self.a: np.ndarray | None = None
         self.q: np.ndarray | None = None  # the twin's joint posture at the robot's coming tick
+        self.velocity: np.ndarray | None = None  # what its controller saw last: (vx, vy, yaw rate), body frame
 
     def advance(self, step: TwinInput) -> None:
         """One tick, after the robot's controller gave `step.a` from the measured joints: resync when told to, then
@@ -111,7 +113,9 @@ class NominalTwin:
             else:
                 self.estimator.update(state)
         if policy_tick or self.a is None:
-            a = self.controller(state, self._base(state), step.command)  # also advances its gait clock
+            base = self._base(state)
+            self.velocity = np.array((base.linvel[0], base.linvel[1], base.angvel[2]))
+            a = self.controller(state, base, step.command)  # also advances its gait clock
             if resync is not None:  # the robot's controller state: its target now is the action memory of both
                 a = np.array(step.a, dtype=float)
                 self.controller.last_action = a

@@ -465,7 +465,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
             period_now = round(1e6 * (now - first_now)) // policy_period_us
             if period_now != policy_period:
                 policy_period = period_now
-                command = standstill if commands is None else commands.at(now - clock0)
+                command = scheme.steer(standstill if commands is None else commands.at(now - clock0))
                 try:
                     a = controller(robot, estimator.estimate(), command)
                 except ModelError as exc:

@@ -54,6 +54,11 @@ class TransferScheme:
     def torque(self, tau_star: np.ndarray, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
         return tau_star
 
+    def steer(self, command: np.ndarray) -> np.ndarray:
+        """The velocity command the robot's controller gets on this policy tick, from the one in force (only the
+        twin's command correction changes it)."""
+        return command
+
     def close(self) -> None:
         """Release what the scheme started (the twin's thread); called on every exit path of a run."""
 
@@ -161,13 +166,17 @@ class TwinScheme(TransferScheme):
     robot is the simulator, u stays 0. The twin is resynchronised to the robot every `resync_ticks` (and at the next
     policy tick after an offset that looks like a push) from `resync_state()`: the robot's estimator snapshot in a
     robot-faithful run, the simulator's truth in a truth-fed one. It runs where `runner` puts it (inline, or on a
-    thread of its own), and the torque uses the integral `transfer.twin.lag_ticks` old."""
+    thread of its own), and the torque uses the integral `transfer.twin.lag_ticks` old. With a command correction
+    (`transfer.twin.command_time_constant_s` > 0; `velocity()`: the robot's estimated (vx, vy, yaw rate)), the
+    robot's controller gets the command in force plus the correction (`steer`), the twin the command alone."""
 
-    def __init__(self, inner: TransferScheme, runner, resync_state, resync_ticks: int, decimation: int):
+    def __init__(self, inner: TransferScheme, runner, resync_state, resync_ticks: int, decimation: int,
+                 velocity=None):
         super().__init__(inner.reference)
         self.name = "twin" if inner.name == "direct" else f"{inner.name}_twin"
         self.inner, self.runner = inner, runner
         self.resync_state, self.resync_ticks, self.decimation = resync_state, resync_ticks, decimation
+        self.velocity = velocity if runner.integral.command_gain else None
         self.u = np.zeros_like(runner.integral.gain)
         self.reset()
 
@@ -180,6 +189,8 @@ class TwinScheme(TransferScheme):
         self.runner.reset()
         self.q_hat = self.qd_hat = self.one_step = None
         self.u = np.zeros_like(self.u)
+        self.command_offset = np.zeros(3)
+        self._command: np.ndarray | None = None  # the command in force, as the twin gets it
         self._tick = 0
         self._sent: np.ndarray | None = None  # the torque this scheme gave last tick
         self._resynced = -1      # the tick of the last resync
@@ -195,6 +206,10 @@ class TwinScheme(TransferScheme):
         return {"twin": {"resyncs": self.resyncs, "stepped": self.runner.done + 1, "backlog_max": self.backlog_max,
                          "behind_ticks": self.behind_ticks, "lag_ticks": self.runner.lag,
                          "thread": isinstance(self.runner, ThreadTwinRunner)}}
+
+    def steer(self, command: np.ndarray) -> np.ndarray:
+        self._command = np.array(command, dtype=float)
+        return self._command + self.command_offset if self.velocity is not None else command
 
     def predict(self, a, q, qd, tau_star, command=None) -> None:
         self.inner.predict(a, q, qd, tau_star, command)
@@ -216,10 +231,15 @@ class TwinScheme(TransferScheme):
             self.resyncs += 1
         elif self._behind:
             return
-        runner.post(TwinInput(tick, np.array(a, dtype=float), q.copy(), qd.copy(),
-                              np.zeros(3) if command is None else np.array(command, dtype=float), self._sent,
-                              self.resync_state() if resync else None))
-        self.u = runner.u_at(tick)
+        if self._command is None:  # not steered (a caller outside the loop): the command given is the one in force
+            self._command = np.zeros(3) if command is None else np.array(command, dtype=float)
+        velocity = None
+        if self.velocity is not None and policy_tick:
+            base = self.velocity()
+            velocity = np.array((base.linvel[0], base.linvel[1], base.angvel[2]))
+        runner.post(TwinInput(tick, np.array(a, dtype=float), q.copy(), qd.copy(), self._command, self._sent,
+                              self.resync_state() if resync else None, velocity))
+        self.u, self.command_offset = runner.u_at(tick)
 
     def torque(self, tau_star, q, qd) -> np.ndarray:
         self._sent = self.inner.torque(tau_star, q, qd) + self.u
@@ -247,11 +267,14 @@ def build_scheme(config: RobotConfig, name: str, pinn_path: Path | None = None, 
         # activation with the torques still fading in.
         ramp = round(config.safety.torque_ramp_s * config.loop_hz)
         gain = config.eq8.kp * config.dt / settings.twin_time_constant_s
+        command_gain = 0.0 if not settings.twin_command_time_constant_s else (
+            1.0 / (config.policy_hz * settings.twin_command_time_constant_s))
         integral = TwinIntegral(NominalTwin(config, controller), gain, settings.twin_clip * config.tau_limit,
-                                hold_ticks=-(-(ramp + 1) // resync) * resync, disturbance=settings.twin_disturbance_rad)
+                                hold_ticks=-(-(ramp + 1) // resync) * resync, disturbance=settings.twin_disturbance_rad,
+                                command_gain=command_gain)
         runner = (ThreadTwinRunner if paced else InlineTwinRunner)(integral, settings.twin_lag_ticks)
         return TwinScheme(inner, runner, _resync_state(name, base_state, estimator), resync,
-                          config.policy_decimation)
+                          config.policy_decimation, velocity=None if estimator is None else estimator.estimate)
     lookahead = config.models.pinn_lookahead_ticks if name in EQ9_ALIASES else 0
     reference_base = base_state if base_state is not None else (
         None if estimator is None else estimator.estimate)

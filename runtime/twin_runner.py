@@ -29,20 +29,32 @@ from runtime.nominal_twin import NominalTwin, TwinInput
 MAX_BACKLOG_TICKS = 200  # 0.2 s: beyond it the twin's offsets are too old to integrate on a 2 s time constant
 
 
+# The command correction stays within these (vx m/s, vy m/s, yaw rate rad/s): a quarter of the policy's range.
+COMMAND_CLIP = np.array([0.1, 0.1, 0.25])
+
+
 class TwinIntegral:
     """u <- clip(u + gain (q_twin - q), +- clip) on every tick from `hold_ticks` on; an offset above `disturbance`
-    on any joint is a push the twin did not feel: not integrated, and a resync is asked for (`step`'s result)."""
+    on any joint is a push the twin did not feel: not integrated, and a resync is asked for (`step`'s result).
+
+    With `command_gain` > 0, also the command correction: on policy ticks, du_cmd <- clip(du_cmd + command_gain
+    (v_twin - v), +- COMMAND_CLIP), v the robot's estimated (vx, vy, yaw rate) and v_twin the twin's estimator's on
+    the same command: an integral on the velocity the policy leaves to its own tracking, added to the robot's
+    command (never the twin's). The two estimators share their errors where the robot is the simulator, so it
+    stays at zero there."""
 
     def __init__(self, twin: NominalTwin, gain: np.ndarray, clip: np.ndarray, hold_ticks: int,
-                 disturbance: float = np.inf):
+                 disturbance: float = np.inf, command_gain: float = 0.0):
         self.twin = twin
         self.gain, self.clip, self.hold_ticks = gain, clip, hold_ticks  # gain: N·m per rad of offset, per tick
         self.disturbance = disturbance
+        self.command_gain = command_gain  # per policy tick, per (m/s or rad/s) of velocity difference
         self.reset()
 
     def reset(self) -> None:
         self.twin.reset()
         self.u = np.zeros_like(self.gain)
+        self.command = np.zeros(3)  # the command correction
         self._last_tick = -2
 
     def step(self, step: TwinInput) -> bool:
@@ -56,6 +68,9 @@ class TwinIntegral:
                 request = True  # integrated, a push would be pulled back along the twin's path
             elif step.tick >= self.hold_ticks:
                 self.u = np.clip(self.u + self.gain * offset, -self.clip, self.clip)
+                if self.command_gain and step.velocity is not None and self.twin.velocity is not None:
+                    self.command = np.clip(self.command + self.command_gain * (self.twin.velocity - step.velocity),
+                                           -COMMAND_CLIP, COMMAND_CLIP)
         self._last_tick = step.tick
         self.twin.advance(step)
         return request
@@ -66,12 +81,13 @@ class InlineTwinRunner:
 
     def __init__(self, integral: TwinIntegral, lag_ticks: int):
         self.integral, self.lag = integral, lag_ticks
-        self._ring = [np.zeros_like(integral.gain)] * (lag_ticks + 1)  # u after tick t at t % len
+        self._zero = (np.zeros_like(integral.gain), np.zeros(3))
+        self._ring = [(np.zeros_like(integral.gain), np.zeros(3))] * (lag_ticks + 1)  # (u, command) after t
         self.reset()
 
     def reset(self) -> None:
         self.integral.reset()
-        self._ring = [np.zeros_like(self.integral.gain)] * len(self._ring)
+        self._ring = [(np.zeros_like(self.integral.gain), np.zeros(3))] * len(self._ring)
         self.done = -1           # the last tick the twin has stepped
         self.posted = -1         # the last tick posted
         self.request_tick = -1   # the last tick whose offset asked for a resync
@@ -87,7 +103,8 @@ class InlineTwinRunner:
         self._publish(step.tick, self.integral.step(step))
 
     def _publish(self, tick: int, request: bool) -> None:
-        self._ring[tick % len(self._ring)] = self.integral.u  # the integral replaces u, never writes into it
+        # the integral replaces u and the command correction, never writes into them
+        self._ring[tick % len(self._ring)] = (self.integral.u, self.integral.command)
         if request:
             self.request_tick = tick
         self.done = tick
@@ -96,10 +113,11 @@ class InlineTwinRunner:
         """Ticks posted and not yet stepped."""
         return self.posted - self.done
 
-    def u_at(self, tick: int) -> np.ndarray:
-        """The integral as it stood after tick `tick - lag` (or the latest the twin has reached, if behind)."""
+    def u_at(self, tick: int) -> tuple[np.ndarray, np.ndarray]:
+        """(u, command correction) as they stood after tick `tick - lag` (or the latest the twin has reached, if
+        behind); zeros before the first."""
         have = min(self.done, tick - self.lag)
-        return self._ring[have % len(self._ring)] if have >= 0 else self._ring[-1] * 0.0
+        return self._ring[have % len(self._ring)] if have >= 0 else self._zero
 
     def resync_asked(self, since: int, tick: int) -> bool:
         """Whether an offset after tick `since` and no later than `tick - lag` asked for a resync."""
@@ -157,7 +175,7 @@ class ThreadTwinRunner(InlineTwinRunner):
                 with self._stepped:
                     self._stepped.notify_all()
 
-    def u_at(self, tick: int) -> np.ndarray:
+    def u_at(self, tick: int) -> tuple[np.ndarray, np.ndarray]:
         if self.wait:
             wanted = min(tick - self.lag, self.posted)
             with self._stepped:

@@ -431,6 +431,38 @@ def test_the_torque_uses_the_integral_lag_ticks_old():
     assert u == [0.0, 0.0, 0.0, 0.0, 1.0, 2.0, 3.0, 4.0]
 
 
+class VelocityTwin(ScriptedTwin):
+    """A scripted twin whose estimated velocity is given too."""
+
+    def __init__(self, postures, velocity):
+        super().__init__(postures)
+        self.velocity = np.array(velocity, float)
+
+
+def test_the_command_correction_holds_the_robots_velocity_to_the_twins_and_only_the_robot_is_steered():
+    from runtime.estimation import BaseEstimate
+    from runtime.twin_runner import COMMAND_CLIP
+
+    twin = VelocityTwin([[0.0]] * 6, velocity=[0.4, -0.03, 0.4])
+    robot = BaseEstimate(quat=np.array([1.0, 0, 0, 0]), linvel=np.array([0.37, -0.07, 0.0]),
+                         angvel=np.array([0.0, 0.0, 0.38]), euler=np.zeros(3))
+    integral = TwinIntegral(twin, np.array([1.0]), np.array([10.0]), hold_ticks=0, command_gain=0.5)
+    scheme = TwinScheme(TransferScheme(), InlineTwinRunner(integral, 0), lambda: RESYNC, 1000, decimation=1,
+                        velocity=lambda: robot)
+    command = np.array([0.4, 0.0, 0.4])
+    steered = []
+    for _ in range(6):
+        steered.append(scheme.steer(command))
+        scheme.predict(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1), steered[-1])
+    np.testing.assert_array_equal(steered[0], command)  # nothing to correct before the twin has a velocity
+    # per policy tick 0.5 x (twin - robot) = (0.015, 0.02, 0.01), vx and wz until their clip
+    np.testing.assert_allclose(steered[2] - command, [0.015, 0.02, 0.01])
+    np.testing.assert_allclose(steered[5] - command, np.minimum(4 * np.array([0.015, 0.02, 0.01]), COMMAND_CLIP))
+    assert all(np.array_equal(step.command, command) for step in twin.advanced)  # the twin walks the command alone
+    off = scripted_scheme(TransferScheme(), VelocityTwin([[0.0]] * 2, [1.0, 1.0, 1.0]), [1.0], [10.0], 0)
+    assert off.steer(command) is command  # no command correction configured: the command passes unchanged
+
+
 def test_an_offset_beyond_the_disturbance_bound_is_not_integrated_and_resyncs_the_twin():
     twin = ScriptedTwin([[0.05], [0.5], [0.05], [0.05]])
     scheme = scripted_scheme(TransferScheme(), twin, gain=[1.0], clip=[10.0], hold_ticks=0, disturbance=0.3)
