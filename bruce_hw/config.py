@@ -139,6 +139,15 @@ class ModelsConfig:
     policy_spec: Path | None = None
 
 
+@dataclass(frozen=True, slots=True)
+class EstimatorConfig:
+    """The kinematic base estimator's settings (`estimator` section, optional; runtime/kinematic_estimator.py)."""
+
+    # > 0: for this long after the estimator starts, while both feet are flat, the accelerometer's horizontal bias
+    # is learned so that gravity points along the feet plane's normal ("level is where the feet are"); 0: off.
+    level_from_feet_s: float = 0.0
+
+
 TRANSFER_SCHEMES = ("direct", "pinn", "eq9", "shadow", "observer", "twin", "shadow_twin")  # runtime/transfer_schemes.py
 REFERENCE_MODELS = ("pinn", "nominal")                             # runtime/reference_models.py
 
@@ -189,6 +198,7 @@ class RobotConfig:
     buses: Buses
     raw: dict
     transfer: TransferConfig = TransferConfig()
+    estimator: EstimatorConfig = EstimatorConfig()
 
     @property
     def n_joints(self) -> int:
@@ -269,6 +279,7 @@ BOUNDS: dict[str, Bound] = {
     "transfer.twin.lag_ticks": Bound(0, 200, "ticks", "the twin's answer may be this late: 0.2 s beside T >= 1 s",
                                      integer=True),
     "transfer.twin.command_time_constant_s": Bound(0.0, 60.0, "s", "command correction settling; 0: off"),
+    "estimator.level_from_feet_s": Bound(0.0, 10.0, "s", "start-up levelling: the robot stands still that long"),
     "transfer.gap_monitor.window_s": Bound(0.005, 10.0, "s", "RMS window of the one-step residual"),
     "transfer.gap_monitor.warn_rms": Bound(0.0, 100.0, "rad/s", "window RMS that logs a warning", low_open=True),
     "buses.*.baud": Bound(9600, 12_000_000, "bit/s", "UART rates up to the FTDI's 12 Mbaud", integer=True),
@@ -477,7 +488,18 @@ def _actuators(r: YamlReader, can: CanBus) -> tuple[float, float]:
 
 
 _TOP_KEYS = {"name", "mjcf", "rates", "joints", "gains", "actuators", "coupling", "arms", "safety", "policy", "pinn",
-             "buses", "transfer"}
+             "buses", "transfer", "estimator"}
+
+
+def _estimator(r: YamlReader) -> EstimatorConfig:
+    """The optional `estimator` section."""
+    if "estimator" not in r.data:
+        return EstimatorConfig()
+    node = r.mapping("estimator", {"level_from_feet_s"})
+    values = {}
+    if "level_from_feet_s" in node:
+        values["level_from_feet_s"] = r.number("estimator.level_from_feet_s")
+    return EstimatorConfig(**values)
 
 # The safety section's keys are its BOUNDS entries, each a SafetyConfig field of the same name.
 _SAFETY_FIELDS = tuple(key.removeprefix("safety.") for key in BOUNDS if key.startswith("safety."))
@@ -659,6 +681,7 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
         buses=buses,
         raw=data,
         transfer=_transfer(r, loop_hz),
+        estimator=_estimator(r),
     )
 
 

@@ -5,6 +5,8 @@ toe/heel contact switches; the sense board gives no orientation).
 - Attitude: `bruce_hw.attitude.MahonyAttitude` on gravity = the specific force less the velocity filter's own
   acceleration, whose slow part is the leg odometry's, so walking's accelerations do not bias the tilt; yaw starts
   at 0 and is never corrected (nothing on the robot observes heading). `estimate` carries it over the IMU's delay.
+- Optionally (`estimator.level_from_feet_s`), levelled from the feet at start-up: the accelerometer's horizontal
+  bias learned while both feet are flat, from the feet plane's normal (`_level`).
 - Velocity, in the yaw-relative world frame: the accelerometer integrated, v += (R a - g) dt, and each toe or heel
   sphere whose switch is closed a measurement: its lowest point is at rest, so the base moves at v = -R (J(q) qd +
   w x r), from the robot's own MJCF with the base at the origin; a sphere that has just touched down counts less.
@@ -56,6 +58,16 @@ RESET_VELOCITY_STD = 0.01
 # nominal mock's IMU is 1 ms old (it computes its sensors before the physics step whose time they carry), the
 # default gap's 2 ms. The walking policy is sensitive to this lag (docs/walking.md).
 IMU_DELAY_S = 0.002
+# -- levelling from the feet (config estimator.level_from_feet_s) -----------------------------------------------
+# While all four toe and heel spheres have been on the ground for more than LEVEL_SETTLE_TICKS, the plane through
+# their centres (equal radii) is parallel to the floor: its normal n is world-up in the base frame, from the joints
+# alone. The accelerometer's horizontal bias b then follows from f = g n + R^T a + b (a: the filter's own base
+# acceleration), low-passed with LEVEL_TIME_CONSTANT_S; every sample is used as f - b. Learned only in the first
+# `level_from_feet_s` after start-up: during walking the four switches are rarely closed together, and the few
+# double-support moments of a gapped robot's gait gave wrong values (docs/transfer.md, "The base path").
+LEVEL_SETTLE_TICKS = 3
+LEVEL_TIME_CONSTANT_S = 0.1
+LEVEL_BIAS_LIMIT = 0.5  # m/s^2: a learned bias is clipped here (an accelerometer further off is broken, not biased)
 
 FEET = (("r_toe", "r_heel"), ("l_toe", "l_heel"))  # per foot, its toe and heel contact/geom names
 
@@ -120,6 +132,10 @@ class KinematicEstimator:
         self.touchdown_variance = [0.0] + [ODOMETRY_STD ** 2 + (TOUCHDOWN_SPEED * math.exp(-(k - 1) / tau)) ** 2
                                            for k in range(1, self.settle_ticks + 1)]
         self.attitude = MahonyAttitude(self.gravity)
+        self.level_ticks = round(config.estimator.level_from_feet_s * config.loop_hz)
+        self.level_gain = 1.0 / (LEVEL_TIME_CONSTANT_S * config.loop_hz)
+        self.accel_bias = (0.0, 0.0)  # m/s^2, x and y in the IMU frame (learned by levelling from the feet)
+        self.ticks = 0                # updates since reset
         self.stamp = 0.0
         self.velocity = (0.0, 0.0, 0.0)        # m/s, world frame
         self.acceleration = (0.0, 0.0, 0.0)    # m/s^2, world frame: the estimated velocity's last change per s
@@ -132,6 +148,8 @@ class KinematicEstimator:
         self.velocity = (0.0, 0.0, 0.0)
         self.acceleration = (0.0, 0.0, 0.0)
         self.variance = RESET_VELOCITY_STD ** 2
+        self.accel_bias = (0.0, 0.0)
+        self.ticks = 0
         contact = state.contacts.contact.tolist()
         settled = self.settle_ticks + 1
         for foot in self.feet:  # spheres already down at reset are settled, not touching down
@@ -144,12 +162,17 @@ class KinematicEstimator:
         imu = state.imu
         dt = min(max(imu.stamp - self.stamp, 0.0), MAX_IMU_GAP_S)
         self.stamp = imu.stamp
+        self.ticks += 1
+        accel = imu.accel
+        bx, by = self.accel_bias
+        if bx or by:
+            accel = accel - np.array((bx, by, 0.0))
         # The attitude's gravity measurement is the specific force less the base's acceleration, the last tick's
         # change of the velocity estimate (whose slow part is the leg odometry's, free of the attitude's error).
-        quat = self.attitude.update(imu.gyro, imu.accel, imu.stamp, self.acceleration)
+        quat = self.attitude.update(imu.gyro, accel, imu.stamp, self.acceleration)
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = rotation_entries(quat)
         gx, gy, gz = self.attitude.angvel  # bias removed
-        ax, ay, az = imu.accel.tolist()
+        ax, ay, az = accel.tolist()
 
         # Velocity prediction from the specific force rotated to the world, gravity removed.
         px, py, pz = self.velocity
@@ -215,6 +238,22 @@ class KinematicEstimator:
             self.acceleration = ((px - vx) / dt, (py - vy) / dt, (pz - vz) / dt)
         self.velocity = (px, py, pz)
         self.variance = variance
+        if self.ticks <= self.level_ticks and all(
+                foot.toe_ticks > LEVEL_SETTLE_TICKS and foot.heel_ticks > LEVEL_SETTLE_TICKS for foot in self.feet):
+            self._level(imu.accel, quat)
+
+    def _level(self, specific_force: np.ndarray, quat) -> None:
+        """One levelling step (both feet flat; the kinematics at this tick's joints are in `kin`)."""
+        points = np.array([self.kin.geom_xpos[geom] for foot in self.feet for geom in (foot.toe_geom, foot.heel_geom)])
+        normal = np.linalg.svd(points - points.mean(axis=0))[2][-1]  # the feet plane's normal, base frame
+        if normal[2] < 0.0:
+            normal = -normal
+        rotation = np.array(rotation_entries(quat)).reshape(3, 3)
+        seen = specific_force - self.gravity * normal - rotation.T @ np.array(self.acceleration)
+        bx, by = self.accel_bias
+        k = self.level_gain
+        self.accel_bias = (float(np.clip(bx + k * (seen[0] - bx), -LEVEL_BIAS_LIMIT, LEVEL_BIAS_LIMIT)),
+                           float(np.clip(by + k * (seen[1] - by), -LEVEL_BIAS_LIMIT, LEVEL_BIAS_LIMIT)))
 
     def snapshot(self) -> EstimatorSnapshot:
         """The filter's whole state (a few numbers: cheap enough for the control thread at a resync)."""
