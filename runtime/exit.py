@@ -9,6 +9,9 @@ import enum
 import signal
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+# A run's stop cause when a signal ended it: a tool that runs sessions for data or evaluation stops there (a run cut
+# short by the operator is not a result).
+INTERRUPTS = tuple(sig.name for sig in STOP_SIGNALS)
 NOTHING_ENABLED = "before activation: no motor was enabled"  # how a stop during start-up is reported, everywhere
 
 

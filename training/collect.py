@@ -31,6 +31,7 @@ from bruce_hw.mock import MujocoBackend
 from runtime.cli import positive_seconds
 from runtime.commands import COMMAND_AXES, COMMAND_LIMITS, CommandSchedule
 from runtime.controllers import build_controller
+from runtime.exit import INTERRUPTS
 from runtime.falls import fall_rule
 from runtime.inference import ModelError
 from runtime.observers import FallStop, TickObserver, TickView
@@ -46,7 +47,6 @@ COMMAND_RAMP_S = 0.5
 FALL_TRIM_S = 0.5
 PROGRESS_TICKS = 100  # the progress bar moves every 0.1 s of simulated time
 MAX_EMPTY_EPISODES = 20  # in a row: a controller that falls before anything is kept would never finish
-INTERRUPTS = ("SIGINT", "SIGTERM")
 
 
 class CollectError(RuntimeError):

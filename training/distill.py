@@ -33,12 +33,11 @@ from bruce_hw.config import RobotConfig, load_config
 from bruce_hw.mock import MujocoBackend
 from runtime.commands import COMMAND_LIMITS, CommandSchedule
 from runtime.estimation import GroundTruthEstimator
+from runtime.exit import INTERRUPTS
 from runtime.observers import FallStop, TickObserver, TickView
 from runtime.policy import ObservationBuilder
 from runtime.run import run_session
 from runtime.walking.teacher import WalkingTeacher
-
-INTERRUPTS = ("SIGINT", "SIGTERM")  # stop causes that end the distillation, not just the episode
 
 
 @dataclass(frozen=True)

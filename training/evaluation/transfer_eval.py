@@ -28,6 +28,7 @@ from bruce_hw.config import DEFAULT_CONFIG, REFERENCE_MODELS, TRANSFER_SCHEMES, 
 from bruce_hw.quaternion import euler_of
 from bruce_hw.reality_gap import GapError, RealityGap, latency_ticks, load_gap
 from runtime.commands import CommandSchedule
+from runtime.exit import INTERRUPTS
 from runtime.observers import TRACKING_SKIP_S, TickObserver, heading_velocity
 from runtime.policy_spec import policy_spec_for
 from training.evaluation.report import json_safe
@@ -170,6 +171,8 @@ def run_one(spec: RunSpec) -> RunRecord:
                           controller_kind=spec.controller,
                           estimator=spec.estimator, commands=CommandSchedule.constant(*spec.command),
                           observers=[recorder, twin])
+    if summary.stop_cause in INTERRUPTS:  # cut short by the operator: not a result, and not to be cached as one
+        raise KeyboardInterrupt(summary.stop_cause)
     n = recorder.count
     truth = summary.truth
     fell = bool(truth is not None and truth.fell)
