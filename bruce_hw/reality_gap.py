@@ -174,8 +174,12 @@ def gap_path(name_or_path: str | Path) -> Path:
 
 def parse_gap(data: Any, source: str, joints: Sequence[str] | None = None) -> RealityGap:
     """A parsed YAML tree -> RealityGap; unknown sections or keys, wrong types and out-of-range values raise
-    GapError naming `source` and the key. With `joints`, per-joint mappings are checked against them."""
-    r = YamlReader(source, {} if data is None else data, GapError)
+    GapError naming `source` and the key. With `joints`, per-joint mappings are checked against them. An empty file
+    is refused (a typo'd path to an empty file would otherwise be a robot without any gap): `none` says "no gap"."""
+    if data is None:
+        raise GapError(f"{source}: empty: a reality-gap profile sets at least one of {', '.join(SECTIONS)} "
+                       "(configs/gaps/none.yaml lists every key; --gap none is the robot without a gap)")
+    r = YamlReader(source, data, GapError)
     top = r.mapping("", {"seed", *SECTIONS})
     values: dict[str, Any] = {"seed": top["seed"]} if "seed" in top else {}
     for section in SECTIONS:

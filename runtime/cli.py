@@ -165,7 +165,7 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
     from runtime.inference import ModelError
     from runtime.policy_spec import policy_spec_for, spec_file
     from runtime.recorder import RecordError
-    from runtime.run import RunSummary, exit_code_of, run_session, write_stats
+    from runtime.run import RunSummary, exit_code_of, run_session, stats_path_error, write_stats
     from runtime.telemetry import TelemetryError, parse_sink
 
     parser = build_parser()
@@ -195,6 +195,11 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
         write_stats(summary, args.stats)
         return code
 
+    if args.stats is not None:
+        problem = stats_path_error(args.stats)
+        if problem is not None:
+            args.stats = None  # where nothing can be written, nothing is
+            return refused(ExitCode.BAD_INPUT, problem, None)
     try:
         stop.arm()  # a signal from here on (or one that came while the modules loaded) stops start-up at once
         config = load_config(args.config, args.overrides)

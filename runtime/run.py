@@ -239,6 +239,18 @@ def _check_range(config: RobotConfig, what: str, values: np.ndarray, low: np.nda
                          f"({bound}); refused before the motors were enabled")
 
 
+def stats_path_error(path: Path) -> str | None:
+    """Why `--stats PATH` could not be written, checked before anything moves (None: it can): its folder is made
+    and the file opened for appending, as the summary's write at the end will."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with path.open("a"):
+            pass
+    except OSError as exc:
+        return f"--stats {path}: cannot be written ({exc.strerror or exc})"
+    return None
+
+
 def write_stats(summary: RunSummary, path: Path | None) -> None:
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -291,6 +303,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
     grant: RealtimeGrant | None = None
     telemetry = None
     scheme: TransferScheme | None = None
+    activating = False  # from here on a motor may be enabled: a failure must end in damping
     try:
         stop.arm()
         backend.configure()
@@ -342,6 +355,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         controller.reset(robot.joints.q)
         estimator.reset(robot)
         scheme.reset()
+        activating = True
         backend.activate()  # the last step before the loop: the first tick's reading is as fresh as it can be
         if grant is not None and grant.scheduler.startswith("SCHED_FIFO"):
             others = [t for t in threading.enumerate() if t is not threading.current_thread()]
@@ -368,7 +382,8 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         stop.abort = False
         summary.error = f"{type(exc).__name__}: {exc}"
         summary.end(exit_code_of(exc), str(exc))
-        if backend.state not in (LifecycleState.UNCONFIGURED, LifecycleState.FAULT):
+        # Refused during start-up (a model file, a scheme): nothing was enabled, so nothing to damp ("inactive").
+        if activating and backend.state not in (LifecycleState.UNCONFIGURED, LifecycleState.FAULT):
             backend.fault(summary.error)
         _settle(backend, summary)
         raise

@@ -3,6 +3,8 @@ the problem (after argparse's usage lines for a malformed command line), a non-z
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from bruce_hw.hw_check import main as hw_check
@@ -15,9 +17,14 @@ from training.evaluation.cli import main as bruce_eval
 from training.import_cli import main as bruce_import_data
 from training.rl.train_cli import main as bruce_train_policy
 
+EMPTY_FILE = Path(__file__).resolve().parents[1] / "configs" / "gaps" / "__init__.py"  # a file with nothing in it
 CASES = [
     # (command, argv, what the last line must say)
     (bruce_run, ["--config", "nope.yaml"], "nope.yaml: robot config file not found"),
+    # an output that cannot be written is refused before anything moves (it was a traceback after the run)
+    (bruce_run, ["--duration", "0.01", "--rerun", "off", "--stats", "/proc/x.json"],
+     "--stats /proc/x.json: cannot be written"),
+    (bruce_run, ["--duration", "0.01", "--rerun", "off", "--gap", str(EMPTY_FILE)], f"{EMPTY_FILE}: empty"),
     (bruce_run, ["--gap", "nope", "--rerun", "off"], "unknown reality-gap profile 'nope'"),
     (bruce_run, ["--duration", "-1"], "argument --duration: expected a duration > 0 s, got -1"),
     (bruce_run, ["--duration", "inf"], "argument --duration: expected a duration > 0 s, got inf"),

@@ -119,6 +119,20 @@ class SignalDuringConfigure(ActivationSpy):
         os.kill(os.getpid(), signal.SIGTERM)  # delivered to the handler at the next bytecode: mid start-up
 
 
+def test_a_missing_model_file_is_bad_input_and_no_damping_event(config, tmp_path, capsys, caplog):
+    """A --policy that names no file is refused while the motors are still off: exit code 2, the backend never
+    enabled nor put into damping (its state stays inactive), one summary line naming the file, the stats written."""
+    ActivationSpy.activations = 0
+    backend = ActivationSpy(config)
+    stats = tmp_path / "s.json"
+    with pytest.raises(ModelError, match="nope.onnx: file not found"):
+        run_session(backend, config, duration=1.0, realtime=False, policy=tmp_path / "nope.onnx", stats_path=stats)
+    assert ActivationSpy.activations == 0 and backend.state.value == "unconfigured"  # shut down, never faulted
+    data = stats_of(stats)
+    assert data["exit_code"] == ExitCode.BAD_INPUT and data["final_state"] == "inactive", data
+    assert "damping" not in caplog.text and "damping" not in capsys.readouterr().err
+
+
 def test_sigterm_during_start_up_enables_nothing_and_ends_cleanly(config, tmp_path):
     ActivationSpy.activations = 0
     stats = tmp_path / "s.json"
