@@ -30,9 +30,8 @@ import mujoco
 import numpy as np
 
 from bruce_hw.config import RobotConfig
-from bruce_hw.quaternion import euler_of, rotate_to_body
-from bruce_hw.types import GroundTruth, RobotState
-from runtime.estimation import BaseEstimate
+from bruce_hw.types import GroundTruth
+from runtime.estimation import BaseEstimate, GroundTruthEstimator
 from runtime.kinematic_estimator import EstimatorSnapshot, KinematicEstimator
 from runtime.mixing import eq8_torque
 from runtime.reference_models import foot_spheres, nominal_model, place_from_estimate, set_state
@@ -64,6 +63,7 @@ class NominalTwin:
         self._spheres = foot_spheres(self.model)
         self.controller = controller
         self.estimator = KinematicEstimator(config)
+        self.truth = GroundTruthEstimator(nominal)  # the twin's own truth, for truth-fed runs
         self.safety = SafetyStage(config)
         self.eq8 = config.eq8
         self.decimation = config.policy_decimation
@@ -113,7 +113,7 @@ class NominalTwin:
             else:
                 self.estimator.update(state)
         if policy_tick or self.a is None:
-            base = self._base(state)
+            base = self._base()
             self.velocity = np.array((base.linvel[0], base.linvel[1], base.angvel[2]))
             a = self.controller(state, base, step.command)  # also advances its gait clock
             if resync is not None:  # the robot's controller state: its target now is the action memory of both
@@ -125,11 +125,6 @@ class NominalTwin:
         mujoco.mj_step(self.model, data)
         self.q = data.qpos[self._qpos].copy()
 
-    def _base(self, state: RobotState) -> BaseEstimate:
+    def _base(self) -> BaseEstimate:
         """What the twin's controller sees of its base: its own estimator, or (truth-fed runs) its own truth."""
-        if not self.from_truth:
-            return self.estimator.estimate()
-        data = self.data
-        quat = data.qpos[3:7].copy()
-        return BaseEstimate(quat=quat, linvel=rotate_to_body(quat, data.qvel[0:3]), angvel=data.qvel[3:6].copy(),
-                            euler=euler_of(quat))
+        return self.truth.estimate() if self.from_truth else self.estimator.estimate()
