@@ -295,12 +295,11 @@ class SensorGap:
     own stamp); its foot contacts those of `contact_ticks` ticks before its sample (the contacts' stamp stays the
     sample's), each switch chattering for `bounce_ticks` ticks after each change of that delayed contact.
 
-    The extra delays and the bounce are whole ticks (`latency_ticks` of the gap's seconds and `dt`, each rounded on
-    its own). Without `dt`, the tick is the stamp step from the measurement of `reset` to the first one reported
-    after it (the mock's stamps are simulated time, one physics step apart). With the IMU latency and the contact
-    delay and bounce all zero, none of that runs: the path is the one without them, draw for draw."""
+    The extra delays and the bounce are whole ticks (`latency_ticks` of the gap's seconds and the physics tick
+    `dt`, each rounded on its own). With the IMU latency and the contact delay and bounce all zero, none of that
+    runs: the path is the one without them, draw for draw."""
 
-    def __init__(self, gap: RealityGap, joints: Sequence[str], latency: int, dt: float | None = None):
+    def __init__(self, gap: RealityGap, joints: Sequence[str], latency: int, dt: float):
         self.rng = np.random.default_rng(gap.seed)
         self.latency = latency
         self.q_bias, self.qd_bias = gap.per_joint("q_bias", joints), gap.per_joint("qd_bias", joints)
@@ -318,16 +317,13 @@ class SensorGap:
         self._q_partly = None if np.all(q_resolution > 0.0) else q_resolution > 0.0  # the joints quantised, if not all
         self._q_step = np.where(q_resolution > 0.0, q_resolution, 1.0)
         self._counts = np.zeros(len(joints))
-        # Extra IMU delay, contact delay and bounce, in seconds until the tick is known.
-        self._seconds = (gap.imu_latency_s, gap.contact_delay_s, gap.contact_bounce_s)
-        self._staggered = any(self._seconds)  # anything beyond the common latency to do
-        self.imu_ticks = self.contact_ticks = self.bounce_ticks = 0
+        # Extra IMU delay, contact delay and bounce, in ticks.
+        self.imu_ticks = latency_ticks(gap.imu_latency_s, dt)
+        self.contact_ticks = latency_ticks(gap.contact_delay_s, dt)
+        self.bounce_ticks = latency_ticks(gap.contact_bounce_s, dt)
+        self._staggered = bool(self.imu_ticks or self.contact_ticks or self.bounce_ticks)  # beyond the common latency
         self._imu, self._contacts = DelayLine(), DelayLine()
-        # The measurement at reset until the lines are filled (the first report when the tick is learnt there).
-        self._placed: Any = _NOT_RESET if self._staggered else None
-        self.dt = dt
-        if dt is not None and self._staggered:
-            self._set_ticks(dt)
+        self._reset = False  # the IMU and contact delay lines are filled by `reset`
         # Bounce: each switch's last delayed contact and the ticks its window has left.
         self._last_contact = np.zeros(len(FOOT_CONTACT_NAMES), dtype=bool)
         self._changed = np.zeros(len(FOOT_CONTACT_NAMES), dtype=bool)
@@ -338,12 +334,6 @@ class SensorGap:
         self._last_key = b""
         self._open = 0  # ticks until every window has closed
 
-    def _set_ticks(self, dt: float) -> None:
-        imu_s, delay_s, bounce_s = self._seconds
-        self.dt = dt
-        self.imu_ticks, self.contact_ticks = latency_ticks(imu_s, dt), latency_ticks(delay_s, dt)
-        self.bounce_ticks = latency_ticks(bounce_s, dt)
-
     def reset(self, measure: Callable[[], RobotState]) -> None:
         """Fill the delay lines with measurements of the state just placed (what a robot reports before any
         newer sample has come through)."""
@@ -352,17 +342,12 @@ class SensorGap:
             return
         # One more measurement for the IMU and contact lines: with the IMU's bias but no noise (no draw taken, so
         # the noise that follows is the same as without these lines).
+        # The IMU and contact delay lines full of the placed state's (copies of its one measurement); no switch
+        # bouncing.
         placed = measure()
         placed.imu.gyro += self.gyro_bias
         placed.imu.accel += self.accel_bias
-        self._placed = placed
-        if self.dt is not None:  # else the tick comes with the first report
-            self._fill()
-
-    def _fill(self) -> None:
-        """The IMU and contact delay lines full of the placed state's (copies of its one measurement); no switch
-        bouncing."""
-        placed, self._placed = self._placed, None
+        self._reset = True
         self._imu.fill([_copied_imu(placed.imu) for _ in range(self.imu_ticks)])
         self._contacts.fill([placed.contacts.contact.copy() for _ in range(self.contact_ticks)])
         self._last_contact[:] = placed.contacts.contact
@@ -373,22 +358,14 @@ class SensorGap:
     def report(self, measured: RobotState) -> RobotState:
         state = self._measured.pass_through(self._corrupt(measured))
         if self._staggered:
-            self._stagger(state, measured.joints.stamp)
+            self._stagger(state)
         return state
 
-    def _stagger(self, state: RobotState, now: float) -> None:
+    def _stagger(self, state: RobotState) -> None:
         """The extra IMU delay, the contact delay and the bounce, on the state leaving the common delay line (no
         longer held by it, so its fields can be swapped)."""
-        if self._placed is not None:  # the first report after a reset that did not know the tick
-            if self._placed is _NOT_RESET:
-                raise ValueError("SensorGap: report before reset (the IMU and contact delay lines are empty)")
-            if self.dt is None:
-                dt = now - self._placed.joints.stamp
-                if not dt > 0.0:
-                    raise ValueError(f"SensorGap: no tick between the reset's stamp {self._placed.joints.stamp} and "
-                                     f"the first report's {now}: give dt")
-                self._set_ticks(dt)
-            self._fill()
+        if not self._reset:
+            raise ValueError("SensorGap: report before reset (the IMU and contact delay lines are empty)")
         if self.imu_ticks:
             state.imu = self._imu.pass_through(state.imu)
         contacts = state.contacts
@@ -443,9 +420,6 @@ class SensorGap:
             # A small rotation (rotation vector ~ N(0, std^2) per axis) in the IMU frame; the result stays unit.
             mujoco.mju_quatIntegrate(imu.orientation, self.orientation_noise * normal(3), 1.0)
         return state
-
-
-_NOT_RESET = object()  # SensorGap._placed before the first reset
 
 
 def _copied_imu(imu: ImuSample) -> ImuSample:

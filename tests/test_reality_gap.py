@@ -279,10 +279,10 @@ def made_state(k: int, contact, n_joints: int) -> RobotState:
         contacts=FootContacts(contact=np.array(contact, dtype=bool), stamp=t))
 
 
-def reported(config, gap: RealityGap, contacts: np.ndarray, dt: float | None = DT) -> list[RobotState]:
+def reported(config, gap: RealityGap, contacts: np.ndarray) -> list[RobotState]:
     """What SensorGap reports for the measurements made_state(1..), contacts[k] at tick k, after a reset at
-    made_state(0). With `dt` None it learns the tick from the stamps (as in the mock)."""
-    sensors = SensorGap(gap, config.joints, round(gap.sensor_latency_s / DT), dt=dt)
+    made_state(0)."""
+    sensors = SensorGap(gap, config.joints, round(gap.sensor_latency_s / DT), dt=DT)
     sensors.reset(lambda: made_state(0, contacts[0], config.n_joints))
     return [sensors.report(made_state(k, contacts[k], config.n_joints)) for k in range(1, len(contacts))]
 
@@ -301,11 +301,10 @@ def switch_pattern(n_ticks: int, seed: int = 0) -> np.ndarray:
 
 
 @pytest.mark.parametrize(("latency", "delay"), [(0, 3), (2, 3), (1, 0), (0, 1)])
-@pytest.mark.parametrize("dt", [DT, None])
-def test_contact_delay_reports_the_switches_of_n_ticks_before_the_sample(config, latency, delay, dt):
+def test_contact_delay_reports_the_switches_of_n_ticks_before_the_sample(config, latency, delay):
     truth = switch_pattern(200)
     gap = RealityGap(sensor_latency_s=latency * DT, contact_delay_s=delay * DT)
-    states = reported(config, gap, truth, dt)
+    states = reported(config, gap, truth)
     for k, state in enumerate(states, start=1):
         np.testing.assert_array_equal(state.contacts.contact, truth[max(k - latency - delay, 0)], err_msg=f"{k}")
         assert state.contacts.stamp == state.joints.stamp == state.imu.stamp == max(k - latency, 0) * DT
@@ -360,10 +359,9 @@ def test_contact_bounce_leaves_steady_switches_and_the_rest_of_the_state_alone(c
 
 
 @pytest.mark.parametrize(("latency", "imu"), [(0, 3), (1, 3), (2, 1)])
-@pytest.mark.parametrize("dt", [DT, None])
-def test_imu_latency_lags_the_imu_sample_and_its_stamp_behind_the_joints(config, latency, imu, dt):
+def test_imu_latency_lags_the_imu_sample_and_its_stamp_behind_the_joints(config, latency, imu):
     gap = RealityGap(sensor_latency_s=latency * DT, imu_latency_s=imu * DT)
-    states = reported(config, gap, np.zeros((40, 4), dtype=bool), dt)
+    states = reported(config, gap, np.zeros((40, 4), dtype=bool))
     for k, state in enumerate(states, start=1):
         joints_tick, imu_tick = max(k - latency, 0), max(k - latency - imu, 0)
         assert state.joints.stamp == joints_tick * DT and state.joints.q[0] == pytest.approx(0.01 * joints_tick)
@@ -422,29 +420,25 @@ def test_a_profile_without_the_new_keys_reports_bit_identically_to_the_old_senso
     gap = load_gap(path, config.joints)
     assert gap == replace(gap, imu_latency_s=0.0, contact_delay_s=0.0, contact_bounce_s=0.0, q_resolution=0.0)
     expected = old_sensor_path(config, gap, truth)
-    for dt in (DT, None):
-        got = reported(config, gap, truth, dt)
-        for a, b in zip(got, expected, strict=True):
-            for name in ("q", "qd", "stamp"):
-                np.testing.assert_array_equal(getattr(a.joints, name), getattr(b.joints, name))
-            for name in ("gyro", "accel", "orientation", "stamp"):
-                np.testing.assert_array_equal(getattr(a.imu, name), getattr(b.imu, name))
-            np.testing.assert_array_equal(a.contacts.contact, b.contacts.contact)
-            assert a.contacts.stamp == b.contacts.stamp
+    got = reported(config, gap, truth)
+    for a, b in zip(got, expected, strict=True):
+        for name in ("q", "qd", "stamp"):
+            np.testing.assert_array_equal(getattr(a.joints, name), getattr(b.joints, name))
+        for name in ("gyro", "accel", "orientation", "stamp"):
+            np.testing.assert_array_equal(getattr(a.imu, name), getattr(b.imu, name))
+        np.testing.assert_array_equal(a.contacts.contact, b.contacts.contact)
+        assert a.contacts.stamp == b.contacts.stamp
 
 
-def test_sensor_gap_needs_a_reset_and_a_tick_for_the_new_delays(config):
-    sensors = SensorGap(RealityGap(imu_latency_s=0.002), config.joints, 0)
+def test_sensor_gap_needs_a_reset_for_the_new_delays(config):
+    sensors = SensorGap(RealityGap(imu_latency_s=0.002), config.joints, 0, dt=DT)
     with pytest.raises(ValueError, match="report before reset"):
         sensors.report(made_state(1, [False] * 4, config.n_joints))
-    sensors.reset(lambda: made_state(0, [False] * 4, config.n_joints))
-    with pytest.raises(ValueError, match="no tick between the reset's stamp 0.0 and the first report's 0.0: give dt"):
-        sensors.report(made_state(0, [False] * 4, config.n_joints))
 
 
 def test_mock_reports_the_imu_and_the_contacts_late_by_their_ticks(config):
-    """In the mock (which gives SensorGap no dt: it learns the tick from the stamps): the IMU sample and the
-    switches lag the joints by the configured ticks, the joints keep sensor.latency_s."""
+    """In the mock (which gives SensorGap its physics tick): the IMU sample and the switches lag the joints by the
+    configured ticks, the joints keep sensor.latency_s."""
     latency, imu, delay = 1, 3, 2
     gap = RealityGap(sensor_latency_s=latency * config.dt, imu_latency_s=imu * config.dt,
                      contact_delay_s=delay * config.dt)
