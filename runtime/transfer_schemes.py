@@ -168,7 +168,12 @@ class TwinScheme(TransferScheme):
     robot-faithful run, the simulator's truth in a truth-fed one. It runs where `runner` puts it (inline, or on a
     thread of its own), and the torque uses the integral `transfer.twin.lag_ticks` old. With a command correction
     (`transfer.twin.command_time_constant_s` > 0; `velocity()`: the robot's estimated (vx, vy, yaw rate)), the
-    robot's controller gets the command in force plus the correction (`steer`), the twin the command alone."""
+    robot's controller gets the command in force plus the correction (`steer`), the twin the command alone.
+
+    With a dead band (`transfer.twin.dead_band_rad` > 0, `TwinIntegral`), the integral acts only past it, and the
+    inner scheme's correction (the shadow's PD) is applied in the share `engaged` of each joint: the shadow's model
+    has a floor of its own (its null-test error), which a robot that needs no correction should not get. Where the
+    twin sees no offset beyond its noise, the scheme is direct transfer, torque for torque."""
 
     def __init__(self, inner: TransferScheme, runner, resync_state, resync_ticks: int, decimation: int,
                  velocity=None):
@@ -196,6 +201,7 @@ class TwinScheme(TransferScheme):
     def _clear(self) -> None:
         self.q_hat = self.qd_hat = self.one_step = None
         self.u = np.zeros_like(self.u)
+        self.engaged = np.ones_like(self.u) if not self.runner.integral.dead_band.any() else np.zeros_like(self.u)
         self.command_offset = np.zeros(3)
         self._command: np.ndarray | None = None  # the command in force, as the twin gets it
         self._tick = 0
@@ -246,10 +252,11 @@ class TwinScheme(TransferScheme):
             velocity = np.array((base.linvel[0], base.linvel[1], base.angvel[2]))
         runner.post(TwinInput(tick, np.array(a, dtype=float), q.copy(), qd.copy(), self._command, self._sent,
                               self.resync_state() if resync else None, velocity))
-        self.u, self.command_offset = runner.u_at(tick)
+        self.u, self.command_offset, self.engaged = runner.u_at(tick)
 
     def torque(self, tau_star, q, qd) -> np.ndarray:
-        self._sent = self.inner.torque(tau_star, q, qd) + self.u
+        inner = self.inner.torque(tau_star, q, qd)
+        self._sent = tau_star + self.engaged * (inner - tau_star) + self.u
         return self._sent
 
 
@@ -278,7 +285,7 @@ def build_scheme(config: RobotConfig, name: str, pinn_path: Path | None = None, 
             1.0 / (config.policy_hz * settings.twin_command_time_constant_s))
         integral = TwinIntegral(NominalTwin(config, controller), gain, settings.twin_clip * config.tau_limit,
                                 hold_ticks=-(-(ramp + 1) // resync) * resync, disturbance=settings.twin_disturbance_rad,
-                                command_gain=command_gain)
+                                command_gain=command_gain, dead_band=settings.twin_dead_band_rad * config.eq8.kp)
         runner = (ThreadTwinRunner if paced else InlineTwinRunner)(integral, settings.twin_lag_ticks)
         return TwinScheme(inner, runner, _resync_state(name, base_state, estimator), resync,
                           config.policy_decimation, velocity=None if estimator is None else estimator.estimate)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import queue
 import threading
+from typing import NamedTuple
 
 import numpy as np
 
@@ -33,9 +34,24 @@ MAX_BACKLOG_TICKS = 200  # 0.2 s: beyond it the twin's offsets are too old to in
 COMMAND_CLIP = np.array([0.1, 0.1, 0.25])
 
 
+class TwinOutput(NamedTuple):
+    """What the integral gives the control thread at a tick."""
+
+    u: np.ndarray         # the torque added to the inner scheme's: the integral less its dead band
+    command: np.ndarray   # the command correction (vx, vy, yaw rate)
+    engaged: np.ndarray   # per joint, 0..1: how far the integral is past its dead band (the inner correction's share)
+
+
 class TwinIntegral:
     """u <- clip(u + gain (q_twin - q), +- clip) on every tick from `hold_ticks` on; an offset above `disturbance`
     on any joint is a push the twin did not feel: not integrated, and a resync is asked for (`step`'s result).
+
+    The torque given out is u less a dead band (`dead_band`, per joint, N·m): where the robot is the simulator but
+    for noise, quantisation or chatter, u wanders within a few hundredths of a N·m, and acting on that only adds the
+    twin's own noise to a robot that needs nothing. A gap holds an offset, and u integrates through the band and on
+    until the offset is gone: the band costs the correction no steady-state accuracy, only the time to integrate
+    through it. `engaged` = clip(|u| / dead_band - 1, 0, 1) per joint: whether the twin sees an offset its own noise
+    does not explain, given to the inner scheme as the share of its correction to apply (`TwinScheme`).
 
     With `command_gain` > 0, also the command correction: on policy ticks, du_cmd <- clip(du_cmd + command_gain
     (v_twin - v), +- COMMAND_CLIP), v the robot's estimated (vx, vy, yaw rate) and v_twin the twin's estimator's on
@@ -44,11 +60,12 @@ class TwinIntegral:
     stays at zero there."""
 
     def __init__(self, twin: NominalTwin, gain: np.ndarray, clip: np.ndarray, hold_ticks: int,
-                 disturbance: float = np.inf, command_gain: float = 0.0):
+                 disturbance: float = np.inf, command_gain: float = 0.0, dead_band: np.ndarray | None = None):
         self.twin = twin
         self.gain, self.clip, self.hold_ticks = gain, clip, hold_ticks  # gain: N·m per rad of offset, per tick
         self.disturbance = disturbance
         self.command_gain = command_gain  # per policy tick, per (m/s or rad/s) of velocity difference
+        self.dead_band = np.zeros_like(gain) if dead_band is None else np.asarray(dead_band, float)
         self.reset()
 
     def reset(self) -> None:
@@ -56,6 +73,13 @@ class TwinIntegral:
         self.u = np.zeros_like(self.gain)
         self.command = np.zeros(3)  # the command correction
         self._last_tick = -2
+
+    def output(self) -> TwinOutput:
+        """The integral as the control thread uses it (new arrays: the integral never writes into them)."""
+        past = np.maximum(np.abs(self.u) - self.dead_band, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            engaged = np.where(self.dead_band > 0, np.minimum(past / self.dead_band, 1.0), 1.0)
+        return TwinOutput(np.sign(self.u) * past, self.command.copy(), engaged)
 
     def step(self, step: TwinInput) -> bool:
         """Compare the twin's posture predicted for this tick with the measured one, integrate, advance the twin;
@@ -81,13 +105,18 @@ class InlineTwinRunner:
 
     def __init__(self, integral: TwinIntegral, lag_ticks: int):
         self.integral, self.lag = integral, lag_ticks
-        self._zero = (np.zeros_like(integral.gain), np.zeros(3))
-        self._ring = [(np.zeros_like(integral.gain), np.zeros(3))] * (lag_ticks + 1)  # (u, command) after t
+        self._ring = [self._zero()] * (lag_ticks + 1)  # the integral's output after tick t, at t % len
         self.reset()
+
+    def _zero(self) -> TwinOutput:
+        """Before the twin's first answer: no torque, no command correction, the inner scheme not engaged."""
+        zeros = np.zeros_like(self.integral.gain)
+        return TwinOutput(zeros, np.zeros(3), zeros if self.integral.dead_band.any() else np.ones_like(zeros))
 
     def reset(self) -> None:
         self.integral.reset()
-        self._ring = [(np.zeros_like(self.integral.gain), np.zeros(3))] * len(self._ring)
+        self._before = self._zero()
+        self._ring = [self._before] * len(self._ring)
         self.done = -1           # the last tick the twin has stepped
         self.posted = -1         # the last tick posted
         self.request_tick = -1   # the last tick whose offset asked for a resync
@@ -103,8 +132,7 @@ class InlineTwinRunner:
         self._publish(step.tick, self.integral.step(step))
 
     def _publish(self, tick: int, request: bool) -> None:
-        # the integral replaces u and the command correction, never writes into them
-        self._ring[tick % len(self._ring)] = (self.integral.u, self.integral.command)
+        self._ring[tick % len(self._ring)] = self.integral.output()
         if request:
             self.request_tick = tick
         self.done = tick
@@ -113,11 +141,11 @@ class InlineTwinRunner:
         """Ticks posted and not yet stepped."""
         return self.posted - self.done
 
-    def u_at(self, tick: int) -> tuple[np.ndarray, np.ndarray]:
-        """(u, command correction) as they stood after tick `tick - lag` (or the latest the twin has reached, if
-        behind); zeros before the first."""
+    def u_at(self, tick: int) -> TwinOutput:
+        """The integral's output as it stood after tick `tick - lag` (or the latest the twin has reached, if
+        behind); `_zero()` before the first."""
         have = min(self.done, tick - self.lag)
-        return self._ring[have % len(self._ring)] if have >= 0 else self._zero
+        return self._ring[have % len(self._ring)] if have >= 0 else self._before
 
     def resync_asked(self, since: int, tick: int) -> bool:
         """Whether an offset after tick `since` and no later than `tick - lag` asked for a resync."""
@@ -175,7 +203,7 @@ class ThreadTwinRunner(InlineTwinRunner):
                 with self._stepped:
                     self._stepped.notify_all()
 
-    def u_at(self, tick: int) -> tuple[np.ndarray, np.ndarray]:
+    def u_at(self, tick: int) -> TwinOutput:
         if self.wait:
             wanted = min(tick - self.lag, self.posted)
             with self._stepped:

@@ -1,7 +1,9 @@
 """`bruce-eval transfer`: the metrics on paths and traces with known answers, and one short end-to-end run."""
 
+import dataclasses
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -319,3 +321,24 @@ def test_a_run_cut_short_by_a_signal_is_not_a_result(monkeypatch):
     spec = RunSpec("tracking", (0.4, 0.0, 0.0), 1.0, "direct", load_gap("default"))
     with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
         transfer_eval.run_one(spec)
+
+
+def test_cache_key_changes_with_the_robot_config_and_not_with_where_it_lives(tmp_path):
+    """A cached run is the run of its config: a changed setting (or model) in the config's folder is a new key; the
+    same folder copied elsewhere (another checkout) keeps its keys."""
+    import shutil
+
+    from bruce_hw.config import DEFAULT_CONFIG
+
+    spec = plan_suite(suite_settings())[0]
+    one, two = tmp_path / "one" / "robots", tmp_path / "two" / "robots"
+    for folder in (one, two):
+        shutil.copytree(Path(DEFAULT_CONFIG).parent, folder)
+    at_one = dataclasses.replace(spec, config=str(one / "bruce.yaml"))
+    at_two = dataclasses.replace(spec, config=str(two / "bruce.yaml"))
+    assert spec_key(at_one) == spec_key(at_two) == spec_key(dataclasses.replace(spec, config=None))
+    yaml = two / "bruce.yaml"
+    yaml.write_text(yaml.read_text().replace("dead_band_rad: 0.004", "dead_band_rad: 0.003"))
+    assert spec_key(at_two) != spec_key(at_one)
+    (one / "pinn" / "bruce_pinn.onnx").write_bytes(b"retrained")
+    assert spec_key(at_one) not in (spec_key(at_two), spec_key(dataclasses.replace(spec, config=None)))

@@ -410,6 +410,49 @@ def test_twin_integrates_the_posture_offset_from_the_twin_clips_holds_and_resets
     assert not scheme.u.any() and twin.resets == resets + 1 and twin.q is None
 
 
+class FixedCorrection(TransferScheme):
+    """An inner scheme that adds a fixed correction to tau* (a stand-in for the shadow's PD)."""
+
+    name = "shadow"
+
+    def __init__(self, correction):
+        super().__init__()
+        self.correction = np.array(correction, float)
+
+    def torque(self, tau_star, q, qd):
+        return tau_star + self.correction
+
+
+def test_the_dead_band_gives_out_the_integral_past_it_and_fades_the_inner_correction_in():
+    # offsets 0.1 rad per tick on joint 0, none on joint 1; gain 1, band 0.25 N·m: u = 0.1, 0.2, ... on joint 0
+    twin = ScriptedTwin([[0.1, 0.0]] * 8)
+    integral = TwinIntegral(twin, np.array([1.0, 1.0]), np.array([10.0, 10.0]), hold_ticks=0,
+                            dead_band=np.array([0.25, 0.25]))
+    scheme = TwinScheme(FixedCorrection([0.5, -0.5]), InlineTwinRunner(integral, 0), lambda: RESYNC, 1000,
+                        decimation=1)
+    tau_star, zero = np.array([1.0, 2.0]), np.zeros(2)
+    sent = []
+    for _ in range(8):
+        scheme.predict(zero, zero, zero, tau_star)
+        sent.append(scheme.torque(tau_star, zero, zero))
+    # tick k integrates 0.1 k on joint 0 (none at tick 0: no twin posture yet)
+    u0 = [max(0.0, 0.1 * k - 0.25) for k in range(8)]
+    share = [min(1.0, max(0.0, 0.1 * k - 0.25) / 0.25) for k in range(8)]
+    np.testing.assert_allclose([s[0] for s in sent], [1.0 + share[k] * 0.5 + u0[k] for k in range(8)], atol=1e-12)
+    # joint 1: no offset, so no torque of the twin's and none of the inner scheme's: tau* exactly (direct transfer)
+    assert all(s[1] == 2.0 for s in sent)
+    # the band costs no steady-state accuracy: the integral itself runs on from zero, not from the band
+    assert integral.u[0] == pytest.approx(0.7)
+
+
+def test_without_a_dead_band_the_inner_correction_is_applied_whole():
+    twin = ScriptedTwin([[0.0]] * 3)
+    scheme = scripted_scheme(FixedCorrection([0.5]), twin, gain=[1.0], clip=[10.0], hold_ticks=0)
+    for _ in range(3):
+        scheme.predict(np.zeros(1), np.zeros(1), np.zeros(1), np.ones(1))
+        assert scheme.torque(np.ones(1), np.zeros(1), np.zeros(1))[0] == 1.5
+
+
 def test_twin_holds_its_torque_until_the_hold_ends():
     twin = ScriptedTwin([[1.0]] * 5)
     scheme = scripted_scheme(TransferScheme(), twin, gain=[1.0], clip=[10.0], hold_ticks=3)
@@ -557,7 +600,9 @@ def test_a_twin_resynchronised_from_the_estimator_stays_with_the_simulator():
 def test_with_a_gap_the_twin_sees_an_offset_and_the_integral_acts_within_its_clip():
     from bruce_hw.reality_gap import load_gap
 
-    config = load_config(overrides=["transfer.twin.resync_s=0.1", "transfer.twin.time_constant_s=1"])
+    # the integral itself, given out whole (the dead band is tested on its own)
+    config = load_config(overrides=["transfer.twin.resync_s=0.1", "transfer.twin.time_constant_s=1",
+                                    "transfer.twin.dead_band_rad=0"])
     offsets, integral, scheme = run_with_twin(config, load_gap("default"), 400)
     lag = config.transfer.twin_lag_ticks
     assert offsets.max() > 1e-3
@@ -579,6 +624,7 @@ def test_build_twin_schemes_read_the_config_and_resync_from_the_estimator_or_the
     assert isinstance(twin.runner, InlineTwinRunner) and not isinstance(twin.runner, ThreadTwinRunner)
     np.testing.assert_allclose(twin.runner.integral.gain, config.eq8.kp * config.dt / 4.0)
     np.testing.assert_allclose(twin.runner.integral.clip, 0.1 * config.tau_limit)
+    np.testing.assert_allclose(twin.runner.integral.dead_band, config.eq8.kp * config.transfer.twin_dead_band_rad)
     paced = build_scheme(config, "shadow_twin", estimator=estimator, paced=True)
     assert isinstance(paced.inner, ShadowScheme) and isinstance(paced.runner, ThreadTwinRunner)
     assert build_scheme(config, "twin", base_state=backend.ground_truth).resync_state == backend.ground_truth

@@ -7,13 +7,16 @@ One entry per distinct run, named by a hash of its `RunSpec` (`spec_key`) under 
   scored against them) and the runs the figures draw (`trace` keeps only what `plot` reads: joint 0).
 
 A gap without noise makes a deterministic run whatever its seed, so its seed is left out of the key: the seeds of a
-noise-free profile share one run. The key also carries `CACHE_VERSION`: bump it when a metric or a run changes
-meaning, or delete OUT/runs.
+noise-free profile share one run. The key also carries a fingerprint of the robot configuration's folder (the
+config file and the models, policy specs and sidecars beside it, `config_fingerprint`): a changed setting or a
+retrained model is a new run, not a cached one. And `CACHE_VERSION`: bump it when a metric or the code of a run
+changes meaning, or delete OUT/runs.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -32,10 +35,33 @@ def _noisy(gap) -> bool:
                for v in (getattr(gap, name) for name in NOISE_FIELDS))
 
 
+def config_fingerprint(config: str | Path) -> str:
+    """A hash of every file in the robot config's folder and below (the YAML, the ONNX models and their sidecars,
+    the policy specs), by content; cached per (path, size, mtime) of each file."""
+    folder = Path(config).resolve().parent
+    files = tuple(sorted((f.relative_to(folder).as_posix(), f.stat().st_size, f.stat().st_mtime_ns)
+                         for f in folder.rglob("*") if f.is_file() and "__pycache__" not in f.parts))
+    return _fingerprint(str(folder), files)
+
+
+@functools.lru_cache(maxsize=8)
+def _fingerprint(folder: str, files: tuple) -> str:
+    digest = hashlib.sha256()
+    for name, _, _ in files:  # names relative to the folder: two checkouts of one commit share their runs
+        digest.update(name.encode())
+        digest.update((Path(folder) / name).read_bytes())
+    return digest.hexdigest()[:16]
+
+
 def spec_key(spec) -> str:
     """A stable name for the run `spec` describes: 16 hex digits of a hash of its fields (the gap's values, not
-    where it was read from; no seed when the gap has no noise)."""
+    where it was read from; no seed when the gap has no noise), its robot config named by file name and the
+    content of its folder."""
+    from bruce_hw.config import DEFAULT_CONFIG
+
     fields = dataclasses.asdict(spec)
+    config = Path(spec.config or DEFAULT_CONFIG)
+    fields["config"] = (config.name, config_fingerprint(config))  # what it holds, not where it lies
     if spec.gap is not None:
         gap = fields["gap"]
         gap.pop("source", None)
