@@ -116,6 +116,15 @@ class Backend(ABC):
         """Now, on the clock of the stamps this backend puts on its data (for the sensor-age check)."""
         return time.monotonic()
 
+    # Whether `stalled_between` comes from a witness of the host (hw); without one a paced run's late ticks are not
+    # attributed to the machine or the loop.
+    host_witness = False
+
+    def stalled_between(self, t0: float, t1: float) -> float:
+        """Seconds of [t0, t1] (on `clock()`) in which this process was not run: a host stall, not device silence
+        (`bruce_hw.host_witness`). 0 where the backend's clock is the simulation's own (the mock, echo)."""
+        return 0.0
+
     # A robot-faithful run seals the truth while anything but its observers runs (`runtime.run`): the control path
     # must work on what a robot measures, and a read of the truth then raises instead of going unnoticed.
     truth_sealed = False

@@ -267,8 +267,8 @@ class BearLegs:
             self.monitor()
         return reading
 
-    def silence(self, reading: LegReading, now: float) -> str | None:
-        return silence(self.ids, reading, now, self.dt, self.max_age_s)
+    def silence(self, reading: LegReading, now: float, stalled=None) -> str | None:
+        return silence(self.ids, reading, now, self.dt, self.max_age_s, stalled)
 
     def _loss_problem(self, now: float) -> str | None:
         ages = now - self._stamps

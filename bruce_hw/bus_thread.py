@@ -24,14 +24,18 @@ class BusThread:
     """Without a wake-up the thread cycles on its own every `period_s`, resending the newest command (goal writes are
     idempotent; before the first one, read-only cycles), so a tick that runs late still finds a fresh reading; but
     only while that command (or the start) is at most `hold_s` old: a control thread that hangs, or a frozen
-    process, stops the cycles and the motors' own watchdogs take over, as for a killed process. An exception in a
+    process, stops the cycles and the motors' own watchdogs take over, as for a killed process. The command's age is
+    the time the process ran since it was posted (`stalled`: seconds of an interval in which the process was not
+    run, `bruce_hw.host_witness`): after a host stall the thread cycles on at once, so the control thread finds a
+    fresh reading when it resumes. An exception in a
     cycle ends the thread; `error` keeps it for the control thread to raise. `halt(reading)`, run after every cycle,
     may act on a reading that cannot wait for the next tick (the hw backend damps every BEAR on an E-stop or a device
     fault) and return its cause: the thread then ends with `halted` and `halted_at` set, the reading still `latest`
     for the control thread to act on."""
 
     def __init__(self, name: str, cycle: Callable[[Any], Any], *, period_s: float, hold_s: float,
-                 halt: Callable[[Any], str | None] | None = None):
+                 halt: Callable[[Any], str | None] | None = None,
+                 stalled: Callable[[float, float], float] | None = None):
         self.name = name
         self._cycle = cycle
         self._halt = halt
@@ -39,6 +43,7 @@ class BusThread:
         self.halted_at: float | None = None  # time.monotonic() when `halt` acted
         self.period_s = period_s
         self.hold_s = hold_s
+        self._stalled = stalled or (lambda t0, t1: 0.0)
         self._latest: Any = None
         self._go = threading.Event()
         self._command: Any = None
@@ -48,6 +53,7 @@ class BusThread:
         self.error: BaseException | None = None
         self.cycles = 0
         self.first_start = self.last_end = 0.0  # time.monotonic() of the first cycle's start, the last one's end
+        self.last_start: float | None = None     # ... of the last cycle's start (the one in flight, if any)
         self.idle_waits = 0        # times the thread stopped cycling on a command older than hold_s
         self._durations = np.zeros(CYCLE_RING, dtype=np.int32)
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
@@ -111,13 +117,14 @@ class BusThread:
             self._wake.clear()
             if self._stopping:
                 return
-            if not woken and time.monotonic() - self._command_stamp > self.hold_s:
+            if not woken and self._command_age() > self.hold_s:
                 self.idle_waits += 1  # the control thread is gone: no cycles, the motors' watchdogs take over
                 self._wake.wait()
                 continue
             t0 = perf()
+            self.last_start = time.monotonic()
             if not self.cycles:
-                self.first_start = time.monotonic()
+                self.first_start = self.last_start
             try:
                 reading = self._cycle(self._command)
                 # Acted on before it is published: the control thread never sees a reading that halt has yet to
@@ -135,3 +142,7 @@ class BusThread:
             self.last_end = time.monotonic()
             if cause is not None:
                 return
+
+    def _command_age(self) -> float:
+        now = time.monotonic()
+        return now - self._command_stamp - self._stalled(self._command_stamp, now)

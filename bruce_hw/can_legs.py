@@ -99,8 +99,8 @@ class CanLegs:
         self.last_cycle = stamp
         return LegReading(state.position, state.velocity, state.torque, stamp, np.full(len(self.ids), stamp))
 
-    def silence(self, reading: LegReading, now: float) -> str | None:
-        return silence(self.ids, reading, now, self.config.dt, self.config.safety.max_sensor_age_s)
+    def silence(self, reading: LegReading, now: float, stalled=None) -> str | None:
+        return silence(self.ids, reading, now, self.config.dt, self.config.safety.max_sensor_age_s, stalled)
 
     def summary(self) -> str:
         span = self.last_cycle - self.first_cycle if self.cycles > 1 else math.nan

@@ -120,6 +120,7 @@ class SafetyConfig:
     rate_window_s: float         # ... over this window (on the backend's clock; a late tick alone is not a fault)
     reply_loss_max: float        # damping when one motor loses more than this share of its replies ...
     reply_loss_window_s: float   # ... over this window (single lost replies are not faults)
+    host_stall_max_s: float      # a host stall (the process not run) up to this long is ridden through
 
 
 @dataclass(frozen=True, slots=True)
@@ -263,6 +264,8 @@ BOUNDS: dict[str, Bound] = {
     "safety.rate_window_s": Bound(0.01, 1.0, "s", "window of the rate floor"),
     "safety.reply_loss_max": Bound(0.0, 0.5, "", "share of one motor's replies", low_open=True),
     "safety.reply_loss_window_s": Bound(0.05, 60.0, "s", "window of the reply-loss share"),
+    "safety.host_stall_max_s": Bound(0.0, 0.5, "s", "held torque a walking BRUCE survives, less a margin "
+                                     "(docs/safety.md); below the motors' watchdog"),
     "policy.gait_period_s": Bound(0.1, 2.0, "s", "a step cycle", low_open=True),
     "policy.gait_period_s[*][0]": Bound(-2.0, 2.0, "m/s", "vx of a cadence point"),
     "policy.gait_period_s[*][1]": Bound(0.1, 2.0, "s", "a step cycle", low_open=True),
@@ -280,7 +283,7 @@ BOUNDS: dict[str, Bound] = {
     "transfer.twin.lag_ticks": Bound(0, 200, "ticks", "the twin's answer may be this late: 0.2 s beside T >= 1 s",
                                      integer=True),
     "transfer.twin.command_time_constant_s": Bound(0.0, 60.0, "s", "command correction settling; 0: off"),
-    "transfer.twin.dead_band_rad": Bound(0.0, 0.05, "rad", "integral dead band as a posture offset at Eq. 8 Kp; 0: off"),
+    "transfer.twin.dead_band_rad": Bound(0.0, 0.05, "rad", "dead band as a posture offset at Eq. 8 Kp; 0: off"),
     "estimator.level_from_feet_s": Bound(0.0, 10.0, "s", "start-up levelling: the robot stands still that long"),
     "transfer.gap_monitor.window_s": Bound(0.005, 10.0, "s", "RMS window of the one-step residual"),
     "transfer.gap_monitor.warn_rms": Bound(0.0, 100.0, "rad/s", "window RMS that logs a warning", low_open=True),
@@ -654,6 +657,9 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
     if buses.bear.reply_timeout_s >= safety.max_sensor_age_s:
         raise r.fail("buses.bear.reply_timeout_s", f"less than safety.max_sensor_age_s ({safety.max_sensor_age_s:g} "
                      "s): one cycle's wait must not make the data stale", buses.bear.reply_timeout_s)
+    if not buses.can.motors and safety.host_stall_max_s >= buses.bear.watchdog_s:
+        raise r.fail("safety.host_stall_max_s", f"less than buses.bear.watchdog_s ({buses.bear.watchdog_s:g} s): a "
+                     "stall ridden through must end before the BEARs damp themselves", safety.host_stall_max_s)
     margin = safety.position_margin
     standing = r.per_joint("joints.standing_pose", joints, bounds=_inside(
         "joints.standing_pose", joints, q_lower + margin, q_upper - margin,

@@ -16,6 +16,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+import mujoco
 import numpy as np
 
 from bruce_hw.config import RobotConfig
@@ -26,6 +27,11 @@ from drivers.sense import FIRMWARE_GRAVITY
 
 REGISTER_REFRESH_STEPS = 100  # the BEARs' config registers (gains, current limit) are re-read this often
 ARM_EVERY_STEPS = 20          # the arm bus runs at 50 Hz
+# The bring-up stand (`stand on`): the base this far above its standing height (feet clear of the floor), held by a
+# spring stiff beside the legs' Eq. 8 gains (mm and tenths of a degree under the legs' swing).
+STAND_LIFT_M = 0.05
+STAND_KP, STAND_KD = 5000.0, 200.0          # N/m, N s/m
+STAND_KP_ROT, STAND_KD_ROT = 500.0, 20.0    # N m/rad, N m s/rad
 MAX_CATCH_UP_STEPS = 10       # after a longer stall the lost time is dropped (`skipped_steps`), never run in a burst
 BEAR_GAIN_REGISTERS = ("limit_i_max", "p_gain_force", "d_gain_force", "p_gain_position", "d_gain_position",
                        "p_gain_velocity")
@@ -43,6 +49,9 @@ class Plant:
         self.sim = MujocoBackend(config)
         self.sim.configure()
         self.sim.activate()
+        model = self.sim.model
+        self._stand_weight = np.array([0.0, 0.0, float(np.sum(model.body_mass)) * -float(model.opt.gravity[2])])
+        self._stand_at = np.zeros(3)
         self.dt = config.dt
         self.n = config.n_joints
         self.kt = config.torque_per_amp
@@ -55,6 +64,7 @@ class Plant:
         self.arm_qd = np.zeros_like(self.arm_q)
         self.arm_time_constant_s = arm_time_constant_s
         self.held = True
+        self.on_stand = False         # the base held in the air, as on a bring-up stand (`stand`)
         self.steps = 0                # physics steps run
         self.late_steps = 0           # steps started more than one period late
         self.skipped_steps = 0        # steps dropped after stalls
@@ -126,12 +136,36 @@ class Plant:
         with self._lock:
             self._hold()
 
+    def stand(self, on: bool) -> None:
+        """On a bring-up stand (on): the base held STAND_LIFT_M above its standing height, level, by a stiff spring on
+        its free joint (the stand's force, which the IMU feels as support), the feet in the air; off: free again."""
+        with self._lock:
+            self.on_stand = on
+            self._hold()
+
     def _hold(self) -> None:
         self.sim.place(self.config.standing_pose)
+        data = self.sim.data
+        data.qfrc_applied[0:6] = 0.0
+        if self.on_stand:
+            data.qpos[2] += STAND_LIFT_M
+            mujoco.mj_forward(self.sim.model, data)
+            self._stand_at = data.qpos[0:3].copy()
         self.held = True
         self._publish_legs(self.config.standing_pose, np.zeros(self.n), np.zeros(self.n))
         if self.sense is not None:
-            self.sense.set_measurement(accel=(0.0, 0.0, FIRMWARE_GRAVITY), gyro=(0.0, 0.0, 0.0), contacts=(True,) * 4)
+            self.sense.set_measurement(accel=(0.0, 0.0, FIRMWARE_GRAVITY), gyro=(0.0, 0.0, 0.0),
+                                       contacts=(not self.on_stand,) * 4)
+
+    def _support_on_stand(self) -> None:
+        """The stand's force on the base's free joint: a stiff, damped spring to the held position and to level
+        (world-frame force; body-frame torque, as the free joint's rotational DOFs are)."""
+        data = self.sim.data
+        w, x, y, z = data.qpos[3:7]
+        tilt = 2.0 * np.array([w * x + y * z, w * y - z * x, w * z + x * y])  # small-angle rotation from level (body)
+        data.qfrc_applied[0:3] = STAND_KP * (self._stand_at - data.qpos[0:3]) - STAND_KD * data.qvel[0:3] + \
+            self._stand_weight
+        data.qfrc_applied[3:6] = -STAND_KP_ROT * tilt - STAND_KD_ROT * data.qvel[3:6]
 
     def ground_truth(self) -> GroundTruth:
         with self._lock:
@@ -151,6 +185,8 @@ class Plant:
             elif all_off:
                 self._hold()
             if not self.held:
+                if self.on_stand:
+                    self._support_on_stand()
                 self.sim.write(JointCommand(tau_ff=self.coupling.joint_torques(tau_m)))
                 state = self.sim.read()  # saturates per actuator through the coupling, steps the model
                 q, qd = state.joints.q, state.joints.qd

@@ -28,6 +28,7 @@ from bruce_hw.bus_startup import StartupError, ids_text
 from bruce_hw.bus_thread import BusThread
 from bruce_hw.can_legs import CanLegs
 from bruce_hw.config import RobotConfig
+from bruce_hw.host_witness import HostWitness
 from bruce_hw.leg_bus import LegBus, LegReading
 from bruce_hw.types import FootContacts, ImuSample, JointCommand, JointState, RobotState
 from drivers.sense import FIRMWARE_GRAVITY
@@ -49,6 +50,9 @@ GIL_SWITCH_INTERVAL_S = 0.0005
 # How long a stale-looking IMU sample may wait for a newer one (see _newer_sense_sample): short, since the reader
 # thread runs above the loop once it has SCHED_FIFO; it adds to the time a stopped stream takes to reach damping.
 IMU_WAIT_S = 0.0005
+# After a host stall, the first read waits at most this long for one bus cycle (and one IMU sample) that began after
+# the stall, instead of acting on the stale reading or tripping on it (docs/safety.md, "Host stalls").
+POST_STALL_WAIT_S = 0.002
 BUS_STOP_TIMEOUT_S = 0.05   # the longest a bus cycle can take (reply timeout, monitor read) with a margin
 
 
@@ -80,6 +84,7 @@ def make_hw_backend(config: RobotConfig, **options) -> HwBackend:
 # -- the backend ----------------------------------------------------------------------------------------------
 class HwBackend(Backend):
     name = "hw"
+    host_witness = True
 
     def __init__(self, config: RobotConfig, *, check_imu: bool = True, check_contact: bool = False,
                  ping_rounds: int = 7, ping_retry_s: float = 0.5, clear_attempts: int = 6,
@@ -118,6 +123,11 @@ class HwBackend(Backend):
         self._attitude = MahonyAttitude(FIRMWARE_GRAVITY)
         self._saved_switch_interval: float | None = None
         self._bus: BusThread | None = None    # the legs' cycles while active (bruce_hw.bus_thread)
+        # When the process was not run (bruce_hw.host_witness): ages are judged on the time the host ran, and a
+        # stall up to safety.host_stall_max_s is ridden through.
+        self.witness = HostWitness()
+        self.host_stall_max_s = config.safety.host_stall_max_s
+        self._last_read_at: float | None = None  # time.monotonic() of the last active read
         self.bus_cycle_us: dict | None = None  # its cycle-time percentiles, once it has ended
 
     # -- lifecycle -------------------------------------------------------------------------------------------
@@ -145,6 +155,7 @@ class HwBackend(Backend):
             raise BackendError("hw backend: start-up failed:\n  - " + "\n  - ".join(problems))
         # Levels itself on the first sample (the robot is still after the IMU check).
         self._attitude = MahonyAttitude(FIRMWARE_GRAVITY)
+        self.witness.start()  # like the threads below, before the loop asks for real-time scheduling
         self.arms.start()  # before the loop asks for real-time scheduling: threads inherit the caller's
         self._bus = self._new_bus_thread()  # created now, cycling from activate() on
         atexit.register(self.shutdown)  # an interpreter exit that skipped shutdown() still ends in damping
@@ -174,6 +185,7 @@ class HwBackend(Backend):
         from drivers.errors import DriverError
 
         self._torque = None  # zero goal until the first write
+        self._last_read_at = None
         try:
             self.legs.enable()
         except DriverError as exc:
@@ -191,7 +203,7 @@ class HwBackend(Backend):
 
     def _new_bus_thread(self) -> BusThread:
         bus = BusThread("hw-legs", self.legs.cycle, period_s=self.config.dt, hold_s=self.max_sensor_age,
-                        halt=self._damp_on_device_fault)
+                        halt=self._damp_on_device_fault, stalled=self.witness.stalled_between)
         bus.start()
         return bus
 
@@ -256,6 +268,7 @@ class HwBackend(Backend):
 
     def _close_all(self) -> None:
         self._stop_bus()
+        self.witness.stop()
         for close in (self.arms.close, self.legs.close, self._close_sense):
             try:
                 close()
@@ -275,14 +288,18 @@ class HwBackend(Backend):
         if cycle is not None:
             legs["bus_cycle_us"] = cycle
         report = {"legs": legs,
-                  "arms": {"bus": self.arms.name, "cycles": self.arms.cycles, "failed_cycles": self.arms.failed_cycles}}
+                  "arms": {"bus": self.arms.name, "cycles": self.arms.cycles, "failed_cycles": self.arms.failed_cycles},
+                  "host_stalls": self.witness.report()}
         if self.sense is not None:
             report["sense"] = {"port": self.sense_port, "samples": self.sense.sample_count,
                                "stalls": self.sense.stats.timeouts, "rejected": self.sense.stats.rejected_total}
         return report
 
     def link_summary(self) -> str:
-        parts = [self.legs.summary(), f"Dynamixel: {self.arms.cycles} arm cycles, {self.arms.failed_cycles} failed"]
+        stalls = self.witness.report()
+        parts = [self.legs.summary(), f"Dynamixel: {self.arms.cycles} arm cycles, {self.arms.failed_cycles} failed",
+                 f"host: {stalls['count']} stalls (worst {stalls['worst_ms']:.1f} ms, {stalls['total_ms']:.0f} ms in "
+                 f"all; ridden through up to safety.host_stall_max_s {1e3 * self.host_stall_max_s:g} ms)"]
         if self.sense is not None:
             parts.append(f"sense board {self.sense_port}: {self.sense.sample_count} samples, "
                          f"{self.sense.stats.timeouts} stalls, {self.sense.stats.rejected_total} rejected")
@@ -305,6 +322,8 @@ class HwBackend(Backend):
 
         state = self._state
         bus = self._bus
+        if bus is not None and bus.cycling and bus.error is None and state is LifecycleState.ACTIVE:
+            self._ride_through(bus)
         try:
             if bus is not None and bus.cycling:  # active: the newest reading of the bus thread, never waited for
                 if bus.error is not None:
@@ -319,7 +338,7 @@ class HwBackend(Backend):
             raise self._fail(f"{self.legs.name}: {exc}") from exc
         except Exception as exc:  # whatever a vanished port raises on the bus thread (termios.error, OSError)
             raise self._fail(f"{self.legs.name}: {type(exc).__name__}: {exc}") from exc
-        problem = reading.problem or self.legs.silence(reading, time.monotonic())
+        problem = reading.problem or self.legs.silence(reading, time.monotonic(), self.witness.stalled_between)
         if problem and state is not LifecycleState.FAULT:
             raise self._fail(f"{self.legs.name}: {problem}")
         if reading.faults and state is not LifecycleState.FAULT:
@@ -329,7 +348,7 @@ class HwBackend(Backend):
             raise self._fail(self.arms.error)
         try:
             sense, stamp = self.sense.read()
-            if time.monotonic() - stamp > self.max_sensor_age:
+            if self._age(stamp) > self.max_sensor_age:
                 sense, stamp = self._newer_sense_sample(stamp)
         except BusTimeout as exc:
             raise self._fail(f"sense board {exc}") from exc
@@ -344,7 +363,7 @@ class HwBackend(Backend):
             if reading.estop_ids and state is LifecycleState.ACTIVE:
                 self.fault(f"{self.legs.name}: E-stop (error bit 3) on ID(s) {ids_text(reading.estop_ids)}")
             elif not reading.estop_ids:
-                age = time.monotonic() - imu.stamp
+                age = self._age(imu.stamp)
                 if age > self.max_sensor_age:
                     cause = (f"sense board {self.sense_port}: IMU stream stopped: last packet {1e3 * age:.1f} ms "
                              f"ago > safety.max_sensor_age_s {1e3 * self.max_sensor_age:.1f} ms")
@@ -353,6 +372,41 @@ class HwBackend(Backend):
                     self.fault(cause)  # the safety stage's age check trips on the same reading
         self._last = robot
         return robot
+
+    def stalled_between(self, t0: float, t1: float) -> float:
+        return self.witness.stalled_between(t0, t1)
+
+    def _age(self, stamp: float) -> float:
+        """How long the process has run since `stamp`: its age less the host stalls in between."""
+        now = time.monotonic()
+        return now - stamp - self.witness.stalled_between(stamp, now)
+
+    def _ride_through(self, bus: BusThread) -> None:
+        """A read after a host stall: wait (at most POST_STALL_WAIT_S) for a bus cycle and an IMU sample that began
+        after it, so the tick acts on fresh data instead of the stale reading. A stall longer than
+        safety.host_stall_max_s damps at once (the motors held their last current that long); the safety stage
+        then trips on the same stall, naming its length."""
+        now = time.monotonic()
+        last, self._last_read_at = self._last_read_at, now
+        witness = self.witness
+        if last is None:
+            return
+        # the witness wakes every millisecond: a silent witness is a stall that has just ended and is not yet recorded
+        if not witness.stalled_between(last, now) and now - witness.last_wake <= witness.tolerance_s:
+            return
+        deadline = now + POST_STALL_WAIT_S
+        _, imu_stamp = self.sense.latest() if self.sense is not None else (None, None)
+        while time.monotonic() < deadline:
+            fresh_legs = bus.last_start is not None and bus.last_start >= now and bus.last_end >= bus.last_start
+            fresh_imu = imu_stamp is None or (self.sense.latest()[1] or 0.0) > now
+            if fresh_legs and fresh_imu and witness.last_wake >= now:
+                break
+            time.sleep(0.0001)
+        self._last_read_at = time.monotonic()
+        stalled = witness.stalled_between(last, self._last_read_at)
+        if stalled > self.host_stall_max_s:  # damping at once; the safety stage trips on the same stall
+            self.fault(f"host stall: this process was not run for {1e3 * stalled:.1f} ms > "
+                       f"safety.host_stall_max_s {1e3 * self.host_stall_max_s:g} ms")
 
     def _newer_sense_sample(self, stamp: float) -> tuple:
         """A stale-looking sample gets IMU_WAIT_S to be superseded: the reader thread may only have been kept off

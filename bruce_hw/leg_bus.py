@@ -43,16 +43,21 @@ class LegBus(Protocol):
     def clear_watchdog(self) -> None: ...
     def close(self) -> None: ...
     def cycle(self, torque: np.ndarray | None, damping: bool = False, retry: bool = False) -> LegReading: ...
-    def silence(self, reading: LegReading, now: float) -> str | None: ...
+    def silence(self, reading: LegReading, now: float, stalled=None) -> str | None: ...
     def link_report(self) -> dict: ...
     def summary(self) -> str: ...
 
 
-def silence(ids: tuple[int, ...], reading: LegReading, now: float, dt: float, max_age_s: float) -> str | None:
+def silence(ids: tuple[int, ...], reading: LegReading, now: float, dt: float, max_age_s: float,
+            stalled=None) -> str | None:
     """The actuators whose kept sample is too old at `now`. Judged one tick ahead: a sample that will be too old when
     the safety stage looks at it is silence here, where the bus and the IDs are known (the safety stage's own age
-    check could only say "stale joint data")."""
+    check could only say "stale joint data"). The age is the time the process ran since the sample: `stalled(t0,
+    t1)`, the seconds of [t0, t1] in which it was not run (`bruce_hw.host_witness`), is left out: in a host stall
+    nobody asked the devices anything, so it is not their silence."""
     ages = now - reading.stamps
+    if stalled is not None and np.any(ages + dt > max_age_s):
+        ages = ages - np.array([stalled(float(t), now) for t in reading.stamps])
     stale = np.flatnonzero(ages + dt > max_age_s)
     if stale.size:
         age = float(ages[stale].max())

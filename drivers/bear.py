@@ -41,7 +41,7 @@ from drivers.bear_registers import (
     error_flags,
     status_register,
 )
-from drivers.errors import BusTimeout, DeviceFault, DriverError, LinkStats
+from drivers.errors import PORT_ERRORS, BusTimeout, DeviceFault, DriverError, LinkStats
 
 DEFAULT_BAUD = 8_000_000
 # Timeouts: all replies of a request must be in within `reply_timeout_s` (2 ms: BRUCE's bulk_timeout, AOS) plus the
@@ -160,7 +160,7 @@ class BearBus:
         self.read_slice_s = read_slice_s
         self.stats = stats if stats is not None else LinkStats()
         self._parser = StatusParser(self.stats)
-        self._io_errors = (serial.SerialException, OSError)
+        self._io_errors = PORT_ERRORS
         try:
             # 8N1; the read timeout is one slice, so a read returns at the latest after read_slice_s.
             self._serial = serial.Serial(port, baud, timeout=read_slice_s, write_timeout=write_timeout_s)

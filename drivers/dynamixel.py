@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import BusTimeout, DeviceFault, DriverError, LinkStats
+from drivers.errors import PORT_ERRORS, BusTimeout, DeviceFault, DriverError, LinkStats
 from drivers.framing import skip_to_header
 
 # -- protocol constants (ROBOTIS Protocol 2.0) ------------------------------------------------------------------
@@ -551,7 +551,7 @@ class DynamixelArms:
                 self.stats.retries += 1
             try:
                 out = call(self._port, dxl_id, *args)
-            except OSError as exc:  # serial.SerialException included: the adapter went away
+            except PORT_ERRORS as exc:  # serial.SerialException included: the adapter went away
                 raise DriverError(f"{self.bus}: {what} (ID {dxl_id}): {exc}") from exc
             finally:
                 self._port.is_using = False
@@ -699,7 +699,7 @@ class DynamixelArms:
             if result != COMM_SUCCESS:
                 raise DriverError(f"{self.bus}: sync read request not sent ({self._ph.getTxRxResult(result)})")
             data, errors = collect_status(self._port, self.ids, READ_BLOCK_LENGTH, self.stats)
-        except OSError as exc:
+        except PORT_ERRORS as exc:
             raise DriverError(f"{self.bus}: sync read: {exc}") from exc
         finally:
             self._port.is_using = False
@@ -737,7 +737,7 @@ class DynamixelArms:
             self._sync_write.changeParam(dxl_id, list(int(count).to_bytes(4, "little", signed=True)))
         try:
             result = self._sync_write.txPacket()
-        except OSError as exc:
+        except PORT_ERRORS as exc:
             raise DriverError(f"{self.bus}: sync write of goal position: {exc}") from exc
         finally:
             self._port.is_using = False

@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
+import termios
 from collections import Counter
 from dataclasses import dataclass, field
+
+# What a serial port that has gone away raises: OSError (pyserial's SerialException is one) from read and write, and
+# termios.error (not an OSError) from the tcflush/tcsetattr calls behind reset_input_buffer and the port settings.
+PORT_ERRORS = (OSError, termios.error)
 
 
 class DriverError(RuntimeError):

@@ -21,7 +21,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from drivers.errors import BusTimeout, DriverError, LinkStats
+from drivers.errors import PORT_ERRORS, BusTimeout, DriverError, LinkStats
 
 HEADER = 0xFF
 TRAILER = 0xFE
@@ -323,12 +323,10 @@ class SenseBoard:
     def _write(self, packet: bytes) -> None:
         if self._serial is None:
             raise DriverError(f"{self.port}: sense board is not open")
-        import serial
-
         with self._write_lock:
             try:
                 self._serial.write(packet)
-            except (serial.SerialException, OSError) as e:  # SerialTimeoutException is a SerialException
+            except PORT_ERRORS as e:  # SerialTimeoutException is a SerialException, an OSError
                 raise DriverError(f"{self.port}: cannot write to the sense board: {e}") from e
 
     # -- per tick

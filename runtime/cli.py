@@ -163,7 +163,7 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
     from bruce_hw.reality_gap import GapError, load_gap
     from runtime.commands import CommandSchedule
     from runtime.inference import ModelError
-    from runtime.policy_spec import policy_spec_for, spec_file
+    from runtime.policy_spec import policy_spec_for, spec_file, trained_commands
     from runtime.recorder import RecordError
     from runtime.run import RunSummary, exit_code_of, run_session, stats_path_error, write_stats
     from runtime.telemetry import TelemetryError, parse_sink
@@ -209,6 +209,14 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
         if args.controller == "policy" and policy_path is not None:
             policy_spec_for(config, policy_path)  # a bad spec is one line here, before the session starts
         commands = CommandSchedule.from_yaml(args.scenario) if args.scenario is not None else args.cmd
+        if args.controller == "policy" and policy_path is not None and commands is not None:
+            # A policy walks what it was trained on; outside that nobody knows what it does (docs/usage.md).
+            ranges = trained_commands(policy_path)
+            outside = commands.outside(ranges) if ranges else None
+            if outside is not None:
+                given = f"--scenario {args.scenario}" if args.scenario is not None else "--cmd"
+                raise ConfigError(f"{given}: {outside}, the range the policy {policy_path} was trained on (its "
+                                  "sidecar's commands): refused, since what it does there was never tried")
         transfer = args.transfer or config.transfer.scheme
         if args.pinn is not None and (transfer == "direct" or config.transfer.reference_model != "pinn"):
             raise ConfigError(f"--pinn {args.pinn}: transfer {transfer} on reference model "

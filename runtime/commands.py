@@ -79,6 +79,18 @@ class CommandSchedule:
         # Zero-length spans (no ramp) are never interpolated in: bisect_right steps past them.
         self._slopes = np.divide(rises, spans[:, None], out=np.zeros_like(rises), where=spans[:, None] > 0)
 
+    def outside(self, ranges: dict[str, Sequence[float]]) -> str | None:
+        """What of this schedule leaves `ranges` (axis -> (low, high), e.g. the range a policy was trained on), or
+        None. The schedule is piecewise linear: its corners are its extremes."""
+        for i, (axis, unit) in enumerate(zip(COMMAND_AXES, COMMAND_UNITS, strict=True)):
+            if axis not in ranges:
+                continue
+            low, high = ranges[axis]
+            for value in (float(self._values[:, i].min()), float(self._values[:, i].max())):
+                if not low - 1e-12 <= value <= high + 1e-12:
+                    return f"{axis} = {value:g} {unit} is outside [{low:g}, {high:g}] {unit}"
+        return None
+
     @classmethod
     def constant(cls, vx: float, vy: float, wz: float, ramp_s: float = DEFAULT_RAMP_S) -> CommandSchedule:
         """One command for ever (ramped up from 0); ValueError when it is out of `COMMAND_LIMITS`."""

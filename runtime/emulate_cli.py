@@ -45,6 +45,8 @@ one line on its standard output, "ok ..." with the monotonic time it took effect
   estop on|off                       the E-stop input of every BEAR (error bit 3, damping)
   imu stop|start                     the sense board stops (resumes) streaming
   place                              put the robot back on its feet, held until a leg actuator is enabled
+  stand on|off                       a bring-up stand: the base held 5 cm up and level, the feet in the air (on);
+                                     back on its feet (off)
   status                             one JSON line: actuator modes and enables, arms, sense board, physics, loss,
                                      reply delays
 
@@ -365,11 +367,13 @@ def execute(robot, words: list[str]) -> str:
         robot.sense.set_silent(rest[0] == "stop")
     elif verb == "place":
         robot.plant.place()
+    elif verb == "stand" and rest[:1] in (["on"], ["off"]):
+        robot.plant.stand(rest[0] == "on")
     elif verb == "status":
         return "status " + json.dumps(status(robot))
     else:
         raise ValueError("unknown command (silence, answer, unplug, plug, loss, delay, estop on|off, imu stop|start, "
-                         "place, status)")
+                         "place, stand on|off, status)")
     return f"ok {' '.join(words)} t={time.monotonic():.6f}"
 
 

@@ -8,10 +8,12 @@ come out at 1 µs resolution at the end of the run, however long it was.
 from __future__ import annotations
 
 import heapq
+from collections import deque
 
 SECTIONS = ("read", "policy", "pinn", "mixing", "safety", "write", "telemetry")
 HISTOGRAM_BINS_US = 20_000
 WORST_OVERRUNS_KEPT = 10
+LATE_TICKS_KEPT = 1 << 17  # late ticks whose moment is kept for attributing them to the machine or the loop
 
 
 class Histogram:
@@ -52,21 +54,36 @@ class LoopStats:
         self.period = Histogram()
         self.data_age = Histogram()  # age of the oldest joint or IMU sample when the tick read it
         self.sections = {name: Histogram() for name in sections}
+        self.cpu_sections = {name: Histogram() for name in sections}  # each section's CPU time, as `cpu` the tick's
+        self.period_s: float | None = None  # the loop's period, for CPU time as a share of it
         self.ticks = 0
         self.loop_s = 0.0  # from the first tick's start to the last one's (the achieved rate is ticks / loop_s)
         self.late_ticks = 0
+        self._late = deque(maxlen=LATE_TICKS_KEPT)  # (monotonic s of the tick's start, s it was behind)
+        self.late_machine: int | None = None  # late ticks with a host stall in them (None: not attributed)
         self.skipped_ticks = 0
         self._worst: list[int] = []  # min-heap of the largest lateness values (ns)
 
-    def overrun(self, behind_ns: int) -> None:
-        """A late tick, `behind_ns` past its deadline."""
+    def overrun(self, behind_ns: int, at_s: float | None = None) -> None:
+        """A late tick, `behind_ns` past its deadline, started at monotonic `at_s`."""
+        if at_s is not None:
+            self._late.append((at_s, behind_ns / 1e9))
         if len(self._worst) < WORST_OVERRUNS_KEPT:
             heapq.heappush(self._worst, behind_ns)
         elif behind_ns > self._worst[0]:
             heapq.heapreplace(self._worst, behind_ns)
 
+    def attribute(self, stalled_between) -> None:
+        """Split the late ticks into the machine's (the process was not run in the period before the tick started:
+        `stalled_between(t0, t1)`, the host witness) and the loop's own (work that ran long)."""
+        period = self.period_s or 0.0
+        self.late_machine = sum(stalled_between(at - behind - period, at) > 0.0 for at, behind in self._late)
+
     def to_json(self) -> dict:
-        return {
+        attributed = {} if self.late_machine is None else {
+            "late_ticks_machine": self.late_machine, "late_ticks_loop": self.late_ticks - self.late_machine,
+            "late_share_loop": (self.late_ticks - self.late_machine) / self.ticks if self.ticks else 0.0}
+        return {**attributed,
             "ticks": self.ticks,
             "late_ticks": self.late_ticks,
             "late_share": self.late_ticks / self.ticks if self.ticks else 0.0,
@@ -83,8 +100,21 @@ class LoopStats:
                             "max": self.data_age.max_ns / 1000.0 if self.data_age.n else None},
             "sections_us": {name: {"p50": h.percentile(50), "p99": h.percentile(99)}
                             for name, h in self.sections.items() if h.n},
+            "sections_cpu_us": {name: {"p50": h.percentile(50), "p99": h.percentile(99), "p99.9": h.percentile(99.9)}
+                                for name, h in self.cpu_sections.items() if h.n},
+            "cpu_share_of_period": self._cpu_shares(),
             "worst_overruns_us": [ns / 1000.0 for ns in sorted(self._worst, reverse=True)],
         }
+
+    def _cpu_shares(self) -> dict | None:
+        """The tick's CPU time and each section's, p50/p99/p99.9, as shares of the loop's period."""
+        if not self.period_s or not self.cpu.n:
+            return None
+        us = 1e6 * self.period_s
+
+        def share(h: Histogram) -> dict:
+            return {p: h.percentile(float(p[1:])) / us for p in ("p50", "p99", "p99.9")}
+        return {"tick": share(self.cpu), **{name: share(h) for name, h in self.cpu_sections.items() if h.n}}
 
     def text(self) -> str:
         j = self.to_json()
@@ -98,11 +128,20 @@ class LoopStats:
         rate = "" if j["rate_hz"] is None else f"{j['rate_hz']:.0f} Hz, "
         lines = [f"  loop: {rate}work p50 {us(work['p50'])} / p99 {us(work['p99'])} / max {us(work['max'])} µs, period "
                  f"p50 {us(period['p50'])} / p99 {us(period['p99'])} / max {us(period['max'])} µs, late "
-                 f"{self.late_ticks} ({100 * j['late_share']:.3f} %), skipped {self.skipped_ticks}",
+                 f"{self.late_ticks} ({100 * j['late_share']:.3f} %"
+                 + ("" if self.late_machine is None else
+                    f": {self.late_machine} with the host stalled, {j['late_ticks_loop']} of the loop's own making")
+                 + f"), skipped {self.skipped_ticks}",
                  f"  tick CPU time p50 {us(j['cpu_us']['p50'])} / p99 {us(j['cpu_us']['p99'])} / p99.9 "
                  f"{us(j['cpu_us']['p99.9'])} µs",
                  f"  data age p50 {us(j['data_age_us']['p50'])} / p99 {us(j['data_age_us']['p99'])} / max "
                  f"{us(j['data_age_us']['max'])} µs"]
         parts = [f"{name} {v['p50']:.0f}/{v['p99']:.0f}" for name, v in j["sections_us"].items()]
         lines.append("  sections p50/p99 µs: " + ", ".join(parts))
+        shares = j["cpu_share_of_period"]
+        if shares:
+            tick = shares["tick"]
+            parts = [f"{name} {100 * v['p99']:.0f}" for name, v in shares.items() if name != "tick"]
+            lines.append(f"  CPU time, % of the period: tick p50 {100 * tick['p50']:.0f} / p99 {100 * tick['p99']:.0f}"
+                         f" / p99.9 {100 * tick['p99.9']:.0f}; sections p99: " + ", ".join(parts))
         return "\n".join(lines)

@@ -35,20 +35,19 @@ class Pacer:
     def wait(self) -> int:
         """Block until this tick's deadline; returns how far past it the tick starts (ns, >= 0)."""
         now = time.monotonic_ns()
-        behind = now - self.deadline_ns
-        if behind > self.late_ns:
-            self.late_ticks += 1
-            missed = behind // self.period_ns
-            if missed:
-                self.skipped_ticks += missed
-                self.deadline_ns += missed * self.period_ns
-        else:
+        if now - self.deadline_ns <= self.late_ns:
             remaining = self.deadline_ns - now - self.spin_ns
             if remaining > 0:
                 time.sleep(remaining / 1e9)
             while (now := time.monotonic_ns()) < self.deadline_ns:
                 time.sleep(0)
-            behind = now - self.deadline_ns
+        behind = now - self.deadline_ns
+        if behind > self.late_ns:  # late on arrival, or woken late (the machine did not run us on time)
+            self.late_ticks += 1
+            missed = behind // self.period_ns
+            if missed:
+                self.skipped_ticks += missed
+                self.deadline_ns += missed * self.period_ns
         self.deadline_ns += self.period_ns
         return behind
 

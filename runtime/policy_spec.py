@@ -137,6 +137,25 @@ def load_policy_spec(name_or_path: str | Path, config: RobotConfig) -> PolicySpe
     return parse_policy_spec(read_yaml(path, ConfigError, "policy spec"), str(path), config)
 
 
+def trained_commands(model: Path) -> dict[str, tuple[float, float]] | None:
+    """The command ranges (vx, vy, wz: low, high) the policy `model` was trained on, from its sidecar's "commands"
+    (written by training.distill and bruce-train-policy); None when the sidecar does not say."""
+    sidecar = Path(f"{model}.json")
+    if not sidecar.is_file():
+        return None
+    try:
+        entry = json.loads(sidecar.read_text(encoding="utf-8")).get("commands")
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError) as exc:
+        raise ConfigError(f"{sidecar}: not a readable JSON sidecar ({exc})") from None
+    if entry is None:
+        return None
+    try:
+        ranges = {axis: (float(span[0]), float(span[1])) for axis, span in entry.items()}
+    except (AttributeError, TypeError, ValueError, IndexError, KeyError):
+        raise ConfigError(f"{sidecar}: commands: expected axis: [low, high] pairs, got {entry!r}") from None
+    return ranges
+
+
 def sidecar_spec(model: Path, config: RobotConfig) -> PolicySpec | None:
     """The `policy_spec` entry of the model's sidecar `<model>.json` (None when there is none)."""
     sidecar = Path(f"{model}.json")

@@ -130,6 +130,10 @@ class RunSummary:
             lines.append(f"  {legs['bus']}: {legs['cycles']} cycles{timing}, {legs['replies_lost_total']} replies lost "
                          f"({100 * legs['reply_loss_share']:.2f} %)"
                          + (": " + ", ".join(f"ID {i} {n}" for i, n in lost.items()) if lost else ""))
+        stalls = (self.link or {}).get("host_stalls")
+        if stalls is not None:
+            lines.append(f"  host: {stalls['count']} stalls (this process not run for over 2 ms: worst "
+                         f"{stalls['worst_ms']:.1f} ms, {stalls['total_ms']:.0f} ms in all)")
         if self.gap is not None and self.gap.samples:
             rms = self.gap.to_json()["gap_residual_rms"]
             worst = max(rms, key=rms.get)
@@ -427,7 +431,11 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     sections = stats.sections
     h_read, h_policy, h_pinn, h_mix = sections["read"], sections["policy"], sections["pinn"], sections["mixing"]
     h_safety, h_write, h_tel = sections["safety"], sections["write"], sections["telemetry"]
-    safety = SafetyStage(config)
+    cpu_sections = stats.cpu_sections  # the same sections on the thread's CPU clock (the loop's own cost)
+    k_read, k_policy, k_pinn, k_mix = (cpu_sections[n] for n in ("read", "policy", "pinn", "mixing"))
+    k_safety, k_write, k_tel = (cpu_sections[n] for n in ("safety", "write", "telemetry"))
+    stats.period_s = config.dt
+    safety = SafetyStage(config, stalled=backend.stalled_between)
     n_ticks = None if duration is None else round(duration * config.loop_hz)
     # The policy runs on the backend's clock, once per policy period from the first tick: a missed deadline does not
     # slow the gait clock or the command schedule (docs/timing.md).
@@ -463,11 +471,11 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
             if realtime:
                 behind = pacer.wait()
                 if behind > late_ns:
-                    stats.overrun(behind)
+                    stats.overrun(behind, time.monotonic())
             c0 = cpu()
             t0 = perf()
             robot = backend.read()
-            t1 = perf()
+            t1, c1 = perf(), cpu()
             now = backend.clock()  # read once: the age check and the telemetry timeline share it
             stats.data_age.add(max(0, int(1e9 * (now - min(robot.joints.stamp, robot.imu.stamp)))))
             safety.check(robot, now)
@@ -492,9 +500,9 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
                                 f"[{a_low[i]:.3g}, {a_high[i]:.3g}] (asks more than {TARGET_TORQUE_MULTIPLE:g} x "
                                 "its torque limit)")
                     break
-            t2 = perf()
+            t2, c2 = perf(), cpu()
             tau_star = eq8_torque(a, q, qd, eq8)
-            t3 = perf()
+            t3, c3 = perf(), cpu()
             if gap is not None:  # last tick's prediction against this tick's measurement
                 residual = gap.update(scheme.one_step, q, qd)
             try:
@@ -502,15 +510,15 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
             except ModelError as exc:
                 safety.trip(str(exc))
                 break
-            t4 = perf()
+            t4, c4 = perf(), cpu()
             tau = scheme.torque(tau_star, q, qd)
-            t5 = perf()
+            t5, c5 = perf(), cpu()
             tau = safety.filter(tau, robot)
             if safety.tripped:
                 break
-            t6 = perf()
+            t6, c6 = perf(), cpu()
             backend.write(JointCommand(tau_ff=tau))
-            t7 = perf()
+            t7, c7 = perf(), cpu()
             if telemetry is not None:
                 elapsed = now - clock0
                 telemetry.append(tick, elapsed, q, qd, scheme.q_hat, scheme.qd_hat, a, tau_star, tau,
@@ -522,7 +530,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
                     for _, text in safety.transitions[events_sent:]:
                         telemetry.event(tick, elapsed, text, "info")
                     events_sent = len(safety.transitions)
-            t8 = perf()
+            t8, c8 = perf(), cpu()
             if observers:  # evaluation only: in the tick's work, in no section
                 view.fill(tick, now, robot, command, a, tau_star, tau)
                 backend.truth_sealed = False
@@ -538,6 +546,13 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
             h_safety.add(t6 - t5)
             h_write.add(t7 - t6)
             h_tel.add(t8 - t7)
+            k_read.add(c1 - c0)
+            k_policy.add(c2 - c1)
+            k_pinn.add(c4 - c3)
+            k_mix.add(c3 - c2 + c5 - c4)
+            k_safety.add(c6 - c5)
+            k_write.add(c7 - c6)
+            k_tel.add(c8 - c7)
             stats.work.add(perf() - t0)
             stats.cpu.add(cpu() - c0)
             if tick:
@@ -551,6 +566,8 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
                 break
     finally:  # a backend error raised from read() still leaves correct counters
         stats.late_ticks, stats.skipped_ticks = pacer.late_ticks, pacer.skipped_ticks
+        if realtime and backend.host_witness:  # late ticks attributed to the machine or the loop
+            stats.attribute(backend.stalled_between)
         if tick > 1:
             stats.loop_s = (previous_start - first_start) / 1e9
         backend.truth_sealed = False  # the evaluation after the loop reads it; the damping hold does not

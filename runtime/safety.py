@@ -4,8 +4,10 @@ Per tick, in this order:
 1. Triggers of the damping state: an e-stop input; non-finite joint or IMU data; joint or IMU data older than
    `safety.max_sensor_age_s`; tilt beyond `safety.tilt_limit_deg` for `safety.tilt_ticks` ticks; an achieved
    loop rate below `safety.min_rate_hz` over the last `safety.rate_window_s` (on the backend's clock: the robot's
-   time; a late tick alone is not a fault, docs/timing.md). The loop adds its own (a model returning non-finite
-   values, SIGINT or SIGTERM) through `trip()`.
+   time; a late tick alone is not a fault, docs/timing.md). Ages and the rate are judged on the time the process
+   was run: a host stall (`stalled`, the backend's `stalled_between`) is neither old data nor a slow loop, up to
+   `safety.host_stall_max_s` between two ticks; a longer one trips (docs/safety.md, "Host stalls"). The loop adds
+   its own (a model returning non-finite values, SIGINT or SIGTERM) through `trip()`.
 2. The command filter: a non-finite torque trips; torque that pushes a joint further past a position soft
    limit (`joints.position_limits` shrunk by `safety.position_margin`) or further beyond its velocity limit is
    removed; the soft start scales torques in over `safety.torque_ramp_s`; the rate of change is limited to
@@ -37,7 +39,7 @@ class SafetyState(enum.IntEnum):
 
 
 class SafetyStage:
-    def __init__(self, config: RobotConfig):
+    def __init__(self, config: RobotConfig, stalled=None):
         cfg = config.safety
         self.config = config
         self.lower_soft = config.q_lower + cfg.position_margin
@@ -55,6 +57,8 @@ class SafetyStage:
         self.rate_window_s = cfg.rate_window_s
         self.rate_ticks = max(2, math.ceil(cfg.min_rate_hz * cfg.rate_window_s))
         self.damping_kd = cfg.damping_kd
+        self.stalled = stalled or (lambda t0, t1: 0.0)  # seconds of [t0, t1] the process was not run
+        self.host_stall_max = cfg.host_stall_max_s
         self.reset()
 
     def reset(self) -> None:
@@ -90,9 +94,16 @@ class SafetyStage:
             return
         k = self.checks % self.rate_ticks
         oldest = self.starts[k]  # the start `rate_ticks` ticks ago
+        previous = self.starts[(k - 1) % self.rate_ticks]
         self.starts[k] = now
         self.checks += 1
-        if now - oldest > self.rate_window_s and oldest > -math.inf:
+        stalled = self.stalled(previous, now) if previous > -math.inf else 0.0
+        if stalled > self.host_stall_max:
+            return self.trip(f"host stall: this process was not run for {1e3 * stalled:.1f} ms since the previous "
+                             f"tick > safety.host_stall_max_s {1e3 * self.host_stall_max:g} ms (the motors held their "
+                             f"last current meanwhile)")
+        if now - oldest > self.rate_window_s and oldest > -math.inf and \
+                now - oldest - self.stalled(oldest, now) > self.rate_window_s:
             return self.trip(f"loop ran {self.rate_ticks} ticks in {1e3 * (now - oldest):.1f} ms: below "
                              f"safety.min_rate_hz {self.min_rate_hz:g} Hz over safety.rate_window_s "
                              f"{1e3 * self.rate_window_s:g} ms")
@@ -103,8 +114,9 @@ class SafetyStage:
             return self.trip("non-finite joint reading (q or qd)")
         if not all_finite(imu.gyro, imu.accel):
             return self.trip("non-finite IMU reading")
-        age = now - min(joints.stamp, imu.stamp)
-        if age > self.max_age:
+        stamp = min(joints.stamp, imu.stamp)
+        age = now - stamp
+        if age > self.max_age and age - self.stalled(stamp, now) > self.max_age:
             which = "joint" if joints.stamp <= imu.stamp else "IMU"
             return self.trip(f"stale {which} data: {1e3 * age:.1f} ms old > safety.max_sensor_age_s "
                              f"{1e3 * self.max_age:.1f} ms")

@@ -144,11 +144,12 @@ def offset_pinn_onnx(tmp_path_factory):
 # -- the hw backend against `bruce-emulate --lockstep` (tests/test_hw_backend.py, tests/test_hw_safety.py) ---------
 # These tests check what happens (which fault, which device, damping, watchdogs), not the 1 kHz timing (benchmarked
 # in bench/): beside the host on two shared cores, an IMU packet is sometimes late by tens of milliseconds, so the
-# rate-floor and data-age trips get the widest room the config allows, and so does a BEAR reply's wait (an emulator
+# rate-floor and data-age trips get the widest room the config allows, the host-stall bound too (below the BEARs'
+# 50 ms watchdog; tests/test_host_stalls.py tests the bound itself), and so does a BEAR reply's wait (an emulator
 # or a kernel tty worker kept off its CPU by a busy process, not a lost reply). Lost replies are tested at the config's
 # bounds.
 WALL_CLOCK_SLACK = ["safety.min_rate_hz=50", "safety.rate_window_s=1.0", "safety.max_sensor_age_s=0.05",
-                    "buses.bear.reply_timeout_s=0.02"]
+                    "buses.bear.reply_timeout_s=0.02", "safety.host_stall_max_s=0.045"]
 BEAR_IDS = tuple(range(1, 11))
 DXL_IDS = tuple(range(11, 17))
 
@@ -192,7 +193,8 @@ SLOW_MODULES = {
     "test_emulator_cli", "test_train_dynamics", "test_pinn_export", "test_lstm_baseline", "test_analytic",
     "test_evaluate", "test_telemetry", "test_bear_reply_loss", "test_reality_gap", "test_run_outcomes", "test_cli",
     "test_loop", "test_transfer_schemes", "test_standing", "test_olnn", "test_commands", "test_rl_train",
-    "test_replay", "test_web_viewer", "test_robot_faithful",
+    "test_replay", "test_web_viewer", "test_robot_faithful", "test_host_stalls",
+    "test_bringup_emulated",
 }
 
 
@@ -200,3 +202,100 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.module.__name__.rsplit(".", 1)[-1] in SLOW_MODULES:
             item.add_marker(pytest.mark.slow)
+
+
+# -- the bring-up suite (tests/test_bringup.py, marker `hardware`) ---------------------------------------------
+def pytest_addoption(parser):
+    group = parser.getgroup("bruce bring-up (tests/test_bringup.py, -m hardware)")
+    group.addoption("--bruce-config", default=None, help="robot config with the robot's ports (default: BRUCE's)")
+    group.addoption("--bruce-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override, as bruce-run's --set (repeatable)")
+    group.addoption("--bruce-emulate", action="store_true",
+                    help="run the bring-up against bruce-emulate --realtime --lockstep instead of a robot; the "
+                         "emulator plays the person at the E-stop and the cable")
+
+
+@pytest.hookimpl(tryfirst=True, hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """Each phase's report on the item (`rep_setup`, `rep_call`): the bring-up skips the steps after a failed one."""
+    outcome = yield
+    report = outcome.get_result()
+    setattr(item, f"rep_{report.when}", report)
+
+
+@pytest.fixture(scope="module")
+def bringup_target(request):
+    """(config path, overrides, the emulator or None) of the bring-up: the robot's ports, or bruce-emulate's."""
+    from runtime.emulate_cli import EmulatorProcess
+
+    path = request.config.getoption("--bruce-config")
+    overrides = list(request.config.getoption("--bruce-set"))
+    if not request.config.getoption("--bruce-emulate"):
+        yield path, overrides, None
+        return
+    emulator = EmulatorProcess("--realtime", "--lockstep")
+    emulator.send("stand on")  # the robot on its bring-up stand, feet in the air
+    try:
+        yield path, [*emulator.overrides, *overrides], emulator
+    finally:
+        emulator.close()
+
+
+@pytest.fixture
+def bringup_config_with(bringup_target):
+    """The bring-up's robot config with more overrides."""
+    path, overrides, _ = bringup_target
+
+    def load(*extra: str):
+        return load_config(path or DEFAULT_CONFIG, [*overrides, *extra])
+    return load
+
+
+@pytest.fixture
+def bringup_config(bringup_config_with):
+    return bringup_config_with()
+
+
+class PersonOperator:
+    """The person at the robot: told what to do, then given `wait_s` to do it (the run ends when they have)."""
+
+    wait_s = 30.0
+    ASK = {"estop": "press the E-stop within 30 s (the robot holds its pose until then).",
+           "cable": "pull the leg bus's cable (the BEARs' RS-485) within 30 s; keep a hand near the robot."}
+
+    def asks(self, what: str) -> str:
+        return self.ASK[what]
+
+    def at(self, t: float, what: str):
+        return None  # stand still until the person acts
+
+    def undo(self, what: str) -> None:
+        input(f"\n[bring-up] {'release the E-stop' if what == 'estop' else 'plug the cable back in'}, then Enter: ")
+
+
+class EmulatedOperator(PersonOperator):
+    """bruce-emulate in the person's place: the E-stop and the unplugged bus as its fault commands, 1 s in."""
+
+    wait_s = 5.0
+    COMMANDS = {"estop": ("estop on", "estop off"), "cable": ("unplug bear", "plug bear")}
+
+    def __init__(self, emulator):
+        self.emulator = emulator
+
+    def asks(self, what: str) -> str:
+        return f"(emulated: `{self.COMMANDS[what][0]}` 1 s in)"
+
+    def at(self, t: float, what: str):
+        from runtime.emulate_cli import FaultAt
+
+        return FaultAt(self.emulator, self.COMMANDS[what][0], t)
+
+    def undo(self, what: str) -> None:
+        self.emulator.send(self.COMMANDS[what][1])
+        self.emulator.send("stand on")  # back up, at rest
+
+
+@pytest.fixture
+def operator(bringup_target):
+    emulator = bringup_target[2]
+    return PersonOperator() if emulator is None else EmulatedOperator(emulator)

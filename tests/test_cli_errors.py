@@ -30,6 +30,9 @@ CASES = [
     (bruce_run, ["--duration", "inf"], "argument --duration: expected a duration > 0 s, got inf"),
     (bruce_run, ["--set", "rates.loop_hz=7"], "rates.loop_hz"),
     (bruce_run, ["--cmd"], "argument --cmd: expected one argument"),
+    # within what the controllers support, outside what the committed policy was trained on (its sidecar)
+    (bruce_run, ["--duration", "0.01", "--rerun", "off", "--cmd", "0.95,0.25,0"],
+     "--cmd: vx = 0.95 m/s is outside [-0.5, 0.8] m/s, the range the policy"),
     (bruce_emulate, ["--config", "nope.yaml"], "nope.yaml: robot config file not found"),
     (bruce_emulate, ["--bear-delay", "-1"], "--bear-delay: -1 s is not a delay in [0, 0.1] s"),
     (hw_check, ["--config", "nope.yaml"], "nope.yaml: robot config file not found"),

@@ -174,3 +174,33 @@ def test_five_percent_lost_replies_end_in_damping_naming_the_loss_rate(emulator,
                                            r"safety.reply_loss_max 3 %"):
         run_session(backend, hw_config, duration=10.0, realtime=True, controller_kind="standing")
     assert backend.state.value == "unconfigured" and "reply loss" in backend.fault_cause
+
+
+def test_devices_that_vanish_mid_run_end_in_one_line_with_the_bus_exit_code(tmp_path):
+    """The emulator killed mid-run, its pseudo-terminals gone (a USB adapter pulled): bruce-run ends with exit code
+    4 (bus) and one line naming it, its stats written, and no traceback from the shutdown's damping of ports that
+    no longer exist (termios.error from tcflush was one)."""
+    from runtime.emulate_cli import EmulatorProcess
+
+    emulator = EmulatorProcess("--realtime", "--lockstep")
+    stats = tmp_path / "stats.json"
+    try:
+        proc = subprocess.Popen(emulator.bruce_run_argv(20.0, stats, overrides=WALL_CLOCK_SLACK),
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        lines = []
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and proc.poll() is None:
+            lines.append(proc.stdout.readline())
+            if "backend active" in lines[-1]:
+                break
+        time.sleep(0.5)
+        emulator.proc.kill()
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        emulator.close()
+    text = "".join(lines) + out
+    assert proc.returncode == ExitCode.BUS_FAULT, text
+    assert "Traceback" not in text, text
+    data = json.loads(stats.read_text())
+    assert data["exit_code"] == ExitCode.BUS_FAULT and data["fault_class"] == "bus" and data["ticks"] > 0
+    assert "\n" not in data["stop_cause"]

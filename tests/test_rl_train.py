@@ -80,7 +80,7 @@ def test_exported_policy_is_the_trained_actor_on_recorded_observations(small_tra
         vec.walk.step(np.tile(robot.standing_pose, (vec.num_envs, 1)))
     recorded = np.concatenate(recorded)
     path = export_policy(trainer.actor, tmp_path / "p.onnx", recorded.shape[1], robot.standing_pose,
-                         config.action_scale, {"seed": 3})
+                         config.action_scale, {"seed": 3}, {"vx": (-0.5, 0.8), "vy": (-0.3, 0.3), "wz": (-0.5, 0.5)})
     onnx_policy = OnnxPolicy(path, recorded.shape[1], robot.n_joints)
     trainer.alg.eval_mode()
     from tensordict import TensorDict

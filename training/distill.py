@@ -331,6 +331,7 @@ def main(argv: list[str] | None = None) -> int:
     path = export_mlp_policy_onnx(student, args.out, ObservationBuilder(config).size, config.n_joints)
     sidecar = sidecar_path(path)
     record = json.loads(sidecar.read_text())
+    record["commands"] = {"vx": list(settings.vx), "vy": list(settings.vy), "wz": list(settings.wz)}  # trained on
     record["distill"] = {"command": "python -m training.distill " + " ".join(sys.argv[1:] if argv is None else argv),
                          "config": str(config.path), "settings": settings.to_json(), "history": history}
     sidecar.write_text(json.dumps(record, indent=2) + "\n")

@@ -32,15 +32,17 @@ class DeployedPolicy(nn.Module):
 
 
 def export_policy(actor: nn.Module, path: str | Path, obs_dim: int, standing: np.ndarray, action_scale: float,
-                  record: Mapping[str, object]) -> Path:
+                  record: Mapping[str, object], commands: Mapping[str, tuple[float, float]]) -> Path:
     """Write the ONNX policy and add `record` (command, seed, config, data hashes, training figures) to its
-    sidecar under "rl"."""
+    sidecar under "rl", and the command ranges it was trained on (vx, vy, wz: low, high) under "commands", which
+    bruce-run checks a command against (`runtime.policy.trained_commands`)."""
     model = DeployedPolicy(actor, standing, action_scale).eval()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     export_mlp_policy_onnx(model, path, obs_dim, len(standing))
     sidecar = sidecar_path(path)
     data = json.loads(sidecar.read_text())
+    data["commands"] = {axis: list(span) for axis, span in commands.items()}
     data["rl"] = dict(record)
     sidecar.write_text(json.dumps(data, indent=2) + "\n")
     return path

@@ -162,7 +162,8 @@ def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict
                    disable=args.no_progress, dynamic_ncols=True)
         def export(path: Path) -> None:
             export_policy(trainer.actor, path, env.get_observations()["policy"].shape[1], robot.standing_pose,
-                          config.action_scale, _record(args, config, robot, trainer, history))
+                          config.action_scale, _record(args, config, robot, trainer, history),
+                          {"vx": config.env.command_vx, "vy": config.env.command_vy, "wz": config.env.command_wz})
 
         while trainer.iteration < stop_at:
             stats = trainer.step_iteration()

@@ -1,0 +1,119 @@
+"""A host stall is not a device fault (issue 34): `bruce-run --backend hw` in a child process against
+`bruce-emulate --lockstep`, its whole process stopped with SIGSTOP for a set time and continued (every thread stops
+at once, as when a VM is not run), while the emulated devices go on with their own clocks and watchdogs.
+
+Each test asserts how the run ends, what every motor ends in, and the host-stall counters. The age and rate bounds
+are the shipped ones but for a wider data age (20 ms, still below every freeze), so that an emulator kept off the
+CPU of this shared machine is not taken for a silent device; the stall bound is set to 45 ms (below the BEARs'
+50 ms watchdog) so a freeze of 30 ms lies well inside it and one of 80 ms well outside.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import time
+
+import pytest
+from conftest import BEAR_IDS, DXL_IDS
+
+from runtime.exit import ExitCode
+
+pytestmark = pytest.mark.usefixtures("no_memory_lock")
+STALL_BOUND_S = 0.045
+SETTINGS = ["safety.max_sensor_age_s=0.02", "buses.bear.reply_timeout_s=0.004",
+            f"safety.host_stall_max_s={STALL_BOUND_S}"]
+
+
+@pytest.fixture
+def devices(emulator):
+    for command in ("plug bear", f"answer bear {' '.join(map(str, BEAR_IDS))}",
+                    f"answer dynamixel {' '.join(map(str, DXL_IDS))}", "loss bear 0 0", "estop off", "imu start",
+                    "place"):
+        emulator.send(command)
+    return emulator
+
+
+class Run:
+    """bruce-run standing against the emulators, started and waited for until its loop is active."""
+
+    def __init__(self, emulator, tmp_path, seconds: float = 3.0):
+        self.stats = tmp_path / "stats.json"
+        argv = emulator.bruce_run_argv(seconds, self.stats, overrides=SETTINGS)
+        self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.lines = []
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and self.proc.poll() is None:
+            line = self.proc.stdout.readline()
+            self.lines.append(line)
+            if "backend active" in line:
+                return
+        raise AssertionError("".join(self.lines) + self.proc.stdout.read())
+
+    def freeze(self, seconds: float) -> float:
+        """SIGSTOP, `seconds`, SIGCONT; the monotonic time of the stop."""
+        stopped = time.monotonic()
+        os.kill(self.proc.pid, signal.SIGSTOP)
+        time.sleep(seconds)
+        os.kill(self.proc.pid, signal.SIGCONT)
+        return stopped
+
+    def finish(self) -> tuple[dict, str]:
+        out, _ = self.proc.communicate(timeout=60)
+        text = "".join(self.lines) + out
+        return json.loads(self.stats.read_text()), text
+
+
+def test_a_stall_below_the_bound_is_ridden_through_and_counted(devices, tmp_path):
+    run = Run(devices, tmp_path)
+    time.sleep(1.0)
+    run.freeze(0.030)
+    time.sleep(0.3)
+    run.freeze(0.030)
+    stats, text = run.finish()
+    assert stats["exit_code"] == ExitCode.OK and stats["stop_cause"] == "duration reached", text
+    stalls = stats["link"]["host_stalls"]
+    assert stalls["count"] >= 2 and stalls["worst_ms"] >= 28.0 and stalls["total_ms"] >= 56.0, stalls
+    assert "  host: " in text and " stalls (this process not run" in text
+    bear = devices.status()["bear"]
+    assert bear["torque_enable"] == [3] * 10  # the run's own end: damping (deactivate), as every run ends
+
+
+def test_a_stall_beyond_the_bound_ends_in_damping_naming_the_stall(devices, tmp_path):
+    run = Run(devices, tmp_path)
+    time.sleep(1.0)
+    run.freeze(0.080)
+    stats, text = run.finish()
+    assert stats["exit_code"] == ExitCode.SAFETY_TRIP, text
+    cause = stats["stop_cause"]
+    assert "host stall: this process was not run for" in cause and "safety.host_stall_max_s 45 ms" in cause, cause
+    assert float(cause.split("not run for ")[1].split(" ms")[0]) >= 78.0
+    assert devices.status()["bear"]["torque_enable"] == [3] * 10  # the BEARs' watchdog (50 ms) and the host agree
+
+
+def test_device_silence_during_a_run_still_trips_beside_a_stall(devices, tmp_path):
+    """BEAR 4 goes silent, and the host is stopped 30 ms soon after: the silence is still found, on the time the
+    host ran, and named as silence, not as a stall."""
+    run = Run(devices, tmp_path)
+    time.sleep(1.0)
+    devices.send("silence bear 4")
+    run.freeze(0.030)
+    stats, text = run.finish()
+    assert stats["exit_code"] == ExitCode.BUS_FAULT, text
+    assert "no reply from ID(s) 4" in stats["stop_cause"], stats["stop_cause"]
+    assert "host stall" not in stats["stop_cause"]
+
+
+def test_an_estop_during_a_stall_is_acted_on_at_the_first_tick_after_it(devices, tmp_path):
+    run = Run(devices, tmp_path)
+    time.sleep(1.0)
+    os.kill(run.proc.pid, signal.SIGSTOP)
+    time.sleep(0.010)
+    devices.send("estop on")
+    time.sleep(0.010)
+    os.kill(run.proc.pid, signal.SIGCONT)
+    stats, text = run.finish()
+    assert stats["exit_code"] == ExitCode.SAFETY_TRIP or stats["exit_code"] == ExitCode.BUS_FAULT, text
+    assert "E-stop" in stats["stop_cause"] or "e-stop" in stats["stop_cause"], stats["stop_cause"]
+    assert devices.status()["bear"]["torque_enable"] == [3] * 10
+    assert "host stall" not in stats["stop_cause"]  # 20 ms: ridden through, then the E-stop acted on

@@ -1,0 +1,146 @@
+"""Host stalls are not device silence (bruce_hw.host_witness): the witness's record on a virtual clock, and what the
+silence rule, the safety stage and the bus thread make of it. The witness thread itself is checked one-sidedly
+against a real stall of its own process (a loaded machine can only add stalls, never hide one)."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from test_safety import robot, running_stage
+
+from bruce_hw.host_witness import HostWitness
+from bruce_hw.leg_bus import LegReading, silence
+
+IDS = (1, 2, 3)
+DT, MAX_AGE = 0.001, 0.008
+
+
+def reading(stamps) -> LegReading:
+    n = len(IDS)
+    stamps = np.array(stamps, float)
+    return LegReading(np.zeros(n), np.zeros(n), np.zeros(n), float(stamps.min()), stamps)
+
+
+def test_stalled_between_counts_only_the_overlap():
+    witness = HostWitness()
+    witness.record(10.0, 10.020)
+    witness.record(11.0, 11.005)
+    assert witness.stalled_between(9.0, 12.0) == pytest.approx(0.025)
+    assert witness.stalled_between(10.010, 10.5) == pytest.approx(0.010)
+    assert witness.stalled_between(10.5, 10.9) == 0.0
+    assert [round(s.length, 3) for s in witness.stalls_since(10.015)] == [0.02, 0.005]
+    assert witness.report() == {"count": 2, "worst_ms": pytest.approx(20.0), "total_ms": pytest.approx(25.0)}
+
+
+def test_an_actuator_is_silent_on_the_time_the_process_ran():
+    now = 100.0
+    stale = reading([now - 0.0005, now - 0.030, now - 0.0005])  # ID 2's sample is 30 ms old
+    witness = HostWitness()
+    # no stall: 30 ms without a reply from ID 2 is silence
+    assert "no reply from ID(s) 2 for 30.0 ms" in silence(IDS, stale, now, DT, MAX_AGE, witness.stalled_between)
+    # the process was not run for 25 of those 30 ms: nobody asked; 5 ms (+ a tick) is within the bound
+    witness.record(now - 0.027, now - 0.002)
+    assert silence(IDS, stale, now, DT, MAX_AGE, witness.stalled_between) is None
+    # a device silent for 10 ms of the time the process ran, beside the same stall, is silent
+    older = reading([now - 0.0005, now - 0.035, now - 0.0005])
+    assert "no reply from ID(s) 2 for 10.0 ms" in silence(IDS, older, now, DT, MAX_AGE, witness.stalled_between)
+
+
+def test_the_safety_stage_judges_age_and_rate_on_the_time_the_process_ran(config):
+    witness = HostWitness()
+    stage = running_stage(config)
+    stage.stalled = witness.stalled_between
+    stage.host_stall_max = 0.045  # the bound is a setting of its own (tested below): here the discount alone
+    now = 1.0
+    for _ in range(3 * stage.rate_ticks):
+        now += config.dt
+        stage.check(robot(config, stamp=now, imu_stamp=now), now=now)
+    # 40 ms not run: the data read right after are 41 ms old and the window holds too few ticks, both excused
+    witness.record(now, now + 0.040)
+    stamp, now = now, now + 0.041
+    stage.check(robot(config, stamp=stamp, imu_stamp=stamp), now=now)
+    for _ in range(stage.rate_ticks):
+        now += config.dt
+        stage.check(robot(config, stamp=now, imu_stamp=now), now=now)
+    assert not stage.tripped, stage.cause
+    # the same age with no stall recorded is stale data
+    plain = running_stage(config)
+    plain.check(robot(config, stamp=stamp, imu_stamp=stamp), now=stamp + 0.041)
+    assert plain.tripped and "stale joint data" in plain.cause
+
+
+def test_the_bus_thread_holds_the_command_on_the_time_the_process_ran():
+    """No post for 60 ms: a hung control thread (the cycles stop after hold_s, the motors' watchdogs take over),
+    unless that time was a host stall, after which the thread cycles on at once with the command it has."""
+    from test_bus_thread import FakeBus, wait_for
+
+    from bruce_hw.bus_thread import BusThread
+
+    for stalled in (False, True):
+        witness = HostWitness()
+        bus = FakeBus()
+        thread = BusThread("test-bus", bus.cycle, period_s=0.001, hold_s=0.010, stalled=witness.stalled_between)
+        thread.start()
+        thread.begin(("first", 0, None))
+        try:
+            thread.post("tau")
+            if stalled:  # the process "not run" from the post on (the witness's record, on the real clock)
+                witness.record(time.monotonic(), time.monotonic() + 10.0)
+            time.sleep(0.060)
+            if stalled:
+                assert thread.idle_waits == 0 and len(bus.sent) > 20
+            else:
+                assert wait_for(lambda bus_thread=thread: bus_thread.idle_waits >= 1)
+                assert len(bus.sent) < 50  # stopped after about hold_s of cycles
+        finally:
+            thread.stop()
+
+
+WITNESS_CHILD = """
+import sys, time
+sys.path.insert(0, {root!r})
+from bruce_hw.host_witness import HostWitness
+w = HostWitness(); w.start()
+print("ready", flush=True)
+sys.stdin.readline()  # the parent stops and continues us, then writes a line
+time.sleep(0.05)
+print(w.worst_s, flush=True)
+"""
+
+
+def test_the_witness_sees_its_process_stopped():
+    """SIGSTOP for 60 ms: every thread of the process stops, as in a VM stall; the witness records at least that."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    child = subprocess.Popen([sys.executable, "-c", WITNESS_CHILD.format(root=root)], stdin=subprocess.PIPE,
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == "ready"
+        time.sleep(0.05)
+        os.kill(child.pid, signal.SIGSTOP)
+        time.sleep(0.060)
+        os.kill(child.pid, signal.SIGCONT)
+        child.stdin.write("\n")
+        child.stdin.flush()
+        worst = float(child.stdout.readline())
+    finally:
+        child.kill()
+        child.wait()
+    assert worst >= 0.055
+
+
+def test_a_stall_beyond_the_bound_trips_the_safety_stage_naming_its_length(config):
+    witness = HostWitness()
+    stage = running_stage(config)
+    stage.stalled = witness.stalled_between
+    bound = config.safety.host_stall_max_s
+    now = 1.0
+    stage.check(robot(config, stamp=now, imu_stamp=now), now=now)
+    witness.record(now, now + bound + 0.010)
+    now += bound + 0.011
+    stage.check(robot(config, stamp=now, imu_stamp=now), now=now)  # fresh data after it: the stall itself trips
+    assert stage.tripped and "host stall: this process was not run for" in stage.cause
+    assert f"since the previous tick > safety.host_stall_max_s {1e3 * bound:g} ms" in stage.cause
