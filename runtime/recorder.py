@@ -111,6 +111,16 @@ def column_layout(columns: tuple[Column, ...]) -> list[dict]:
     return out
 
 
+REPOSITORY = Path(__file__).resolve().parents[1]
+
+
+def portable_path(path: str | Path) -> str:
+    """A path as a record names it for another machine: relative to this repository when it lies inside it (a
+    checkout anywhere else has the same file there), else as given."""
+    resolved = Path(path).resolve()
+    return resolved.relative_to(REPOSITORY).as_posix() if resolved.is_relative_to(REPOSITORY) else str(path)
+
+
 def file_sha256(path: str | Path) -> str:
     """SHA-256 of a file's bytes, read in blocks (logs, datasets, checkpoints and models are recorded by it)."""
     digest = hashlib.sha256()

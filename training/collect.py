@@ -35,7 +35,7 @@ from runtime.exit import INTERRUPTS
 from runtime.falls import fall_rule
 from runtime.inference import ModelError
 from runtime.observers import FallStop, TickObserver, TickView
-from runtime.recorder import file_sha256
+from runtime.recorder import file_sha256, portable_path
 from runtime.run import run_session
 from training.dataset import Dataset, DatasetError, config_hash, save_dataset
 
@@ -203,7 +203,7 @@ def collect(config: RobotConfig, settings: CollectSettings, *, policy: Path | No
     meta = {
         "joint_names": list(config.joints),
         "config_hash": config_hash(config),
-        "config": str(config.path),
+        "config": portable_path(config.path),
         "robot": config.name,
         "seed": settings.seed,
         "seconds": settings.seconds,

@@ -36,6 +36,7 @@ from runtime.estimation import GroundTruthEstimator
 from runtime.exit import INTERRUPTS
 from runtime.observers import FallStop, TickObserver, TickView
 from runtime.policy import ObservationBuilder
+from runtime.recorder import portable_path
 from runtime.run import run_session
 from runtime.walking.teacher import WalkingTeacher
 
@@ -333,7 +334,7 @@ def main(argv: list[str] | None = None) -> int:
     record = json.loads(sidecar.read_text())
     record["commands"] = {"vx": list(settings.vx), "vy": list(settings.vy), "wz": list(settings.wz)}  # trained on
     record["distill"] = {"command": "python -m training.distill " + " ".join(sys.argv[1:] if argv is None else argv),
-                         "config": str(config.path), "settings": settings.to_json(), "history": history}
+                         "config": portable_path(config.path), "settings": settings.to_json(), "history": history}
     sidecar.write_text(json.dumps(record, indent=2) + "\n")
     print(f"distill: wrote {path} ({path.stat().st_size / 1024:.0f} kB) and {sidecar}")
     return 0

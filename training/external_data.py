@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from bruce_hw.config import RobotConfig
-from runtime.recorder import file_sha256
+from runtime.recorder import file_sha256, portable_path
 from training.dataset import Dataset, DatasetError, config_hash, load_dataset
 from training.episodes import episode_runs
 
@@ -505,7 +505,7 @@ def convert(raw: RawTrajectory, config: RobotConfig, *, resample: bool = False, 
     metadata = {
         "joint_names": list(config.joints),
         "config_hash": config_hash(config),
-        "config": str(config.path),
+        "config": portable_path(config.path),
         "robot": config.name,
         "samples": len(episode),
         "dt": config.dt,

@@ -27,7 +27,7 @@ import torch
 import yaml
 
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
-from runtime.recorder import file_sha256
+from runtime.recorder import file_sha256, portable_path
 from training.rl.train_config import DEFAULT_TRAINING_CONFIG, TrainingConfig, TrainingConfigError, load_training_config
 
 CHECKPOINT = "checkpoint.pt"
@@ -216,9 +216,9 @@ def _start_from_policy(trainer, vec, config: TrainingConfig, progress) -> dict:
 
 def _record(args: argparse.Namespace, config: TrainingConfig, robot, trainer, history: dict) -> dict:
     """The exported policy's sidecar record: how to train it again, and what the training reached."""
-    return {"command": args.command_line, "seed": config.seed, "config": str(config.path),
+    return {"command": args.command_line, "seed": config.seed, "config": portable_path(config.path),
             "config_sha256": file_sha256(config.path), "overrides": list(args.set),
-            "robot_config": str(robot.path), "robot_config_sha256": file_sha256(robot.path),
+            "robot_config": portable_path(robot.path), "robot_config_sha256": file_sha256(robot.path),
             "resolved_config": yaml.safe_dump(config.raw, sort_keys=False),
             "warm_start": history["warm_start"], "iterations": trainer.iteration,
             "env_steps": history["env_steps"], "train_wall_s": round(history["wall_s"], 1),
