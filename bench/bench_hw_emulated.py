@@ -15,8 +15,12 @@
    system monotonic clock) to the hw backend entering damping. Goals: silence, IMU stop, unplug <= 10 ms;
    E-stop <= 2 ms.
 
-    python bench/bench_hw_emulated.py [--seconds 30] [--cmd 0.4,0,0] [--fault-trials 3] \
-        [--emulator-args "--bear-delay 0.0007 --bear-jitter 0.0015"] [--set KEY=VALUE ...]
+    python bench/bench_hw_emulated.py [--seconds 30] [--cmd 0.4,0,0] [--transfer shadow_twin] [--runs 5] \
+        [--fault-trials 3] [--emulator-args "--bear-delay 0.0007 --bear-jitter 0.0015"] [--set KEY=VALUE ...]
+
+Each run also reports the host stalls it counted itself (bruce_hw.host_witness), its late ticks split into those
+with the host stalled and those of the loop's own making, and the tick's CPU time as a share of the period (the
+loop's own cost, which a VM that does not run the thread does not advance).
 """
 
 from __future__ import annotations
@@ -114,6 +118,18 @@ def report(name: str, stats: dict, emulator: EmulatorProcess, no_delay: bool) ->
     steal = "-" if stats["steal_s"] is None else f"{1e3 * stats['steal_s']:.0f} ms"
     print(f"     host: {legs.get('host_stalls', '?')} bus reads it was late for (not counted as lost); hypervisor "
           f"steal during the run {steal}")
+    stalls = (stats.get("link") or {}).get("host_stalls") or {}
+    print(f"     host stalls the run counted (its own witness, > 2 ms): {stalls.get('count', '?')}, worst "
+          f"{stalls.get('worst_ms', float('nan')):.1f} ms, {stalls.get('total_ms', float('nan')):.0f} ms in all; late "
+          f"ticks: {stats.get('late_ticks_machine', '?')} with the host stalled, {stats.get('late_ticks_loop', '?')} "
+          f"of the loop's own making ({100 * stats.get('late_share_loop', float('nan')):.2f} %)")
+    shares = stats.get("cpu_share_of_period") or {}
+    if shares:
+        tick = shares["tick"]
+        worst = max((k for k in shares if k != "tick"), key=lambda k: shares[k]["p99"])
+        print(f"     tick CPU time, share of the period: p50 {100 * tick['p50']:.0f} / p99 {100 * tick['p99']:.0f} / "
+              f"p99.9 {100 * tick['p99.9']:.0f} %; the largest section at p99: {worst} "
+              f"{100 * shares[worst]['p99']:.0f} %")
     seen = stats["witness"]
     longest = max((ms for _, ms in seen["stalls"]), default=0.0)
     print(f"     machine stalls seen by the witness (SCHED_FIFO 90 on every CPU, > 2 ms): {len(seen['stalls'])}, "
@@ -160,6 +176,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--cmd", default=None, metavar="VX,VY,WZ", help="also walk at this command")
+    parser.add_argument("--runs", type=int, default=1, help="runs of each kind (stand, walk)")
+    parser.add_argument("--transfer", default=None, help="bruce-run --transfer for the walk (default: the config's)")
     parser.add_argument("--fault-trials", type=int, default=3)
     parser.add_argument("--emulator-args", default="", metavar="ARGS",
                         help='more bruce-emulate options, e.g. "--bear-delay 0.0007 --bear-jitter 0.0015"')
@@ -174,12 +192,17 @@ def main() -> None:
     print(f"bruce-emulate {' '.join(emulator_args)}; bruce-run --set {' '.join(args.overrides) or '(defaults)'}")
     with EmulatorProcess(*emulator_args) as emulator:
         print(f"1. runs of {args.seconds:g} s")
-        ok = report("stand", session(emulator, args.seconds, None, args.overrides), emulator, no_delay)
-        if args.cmd:
-            emulator.send("place")
-            ok &= report(f"walk --cmd {args.cmd}", session(emulator, args.seconds, args.cmd, args.overrides),
-                         emulator, no_delay)
-        print(f"   runs without a trip: {'yes' if ok else 'NO'}")
+        completed, runs = 0, 0
+        walk = [f"transfer.scheme={args.transfer}"] if args.transfer else []
+        for k in range(args.runs):
+            for name, cmd, extra_set in (("stand", None, []), (f"walk --cmd {args.cmd}", args.cmd, walk)):
+                if name != "stand" and not cmd:
+                    continue
+                emulator.send("place")
+                completed += report(f"{name} #{k + 1}", session(emulator, args.seconds, cmd,
+                                                                 args.overrides + extra_set), emulator, no_delay)
+                runs += 1
+        print(f"   runs completed without a trip: {completed} of {runs}")
         if args.fault_trials > 0:
             emulator.send("place")
             faults(emulator, args.fault_trials, args.overrides)

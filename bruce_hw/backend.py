@@ -116,6 +116,17 @@ class Backend(ABC):
         """Now, on the clock of the stamps this backend puts on its data (for the sensor-age check)."""
         return time.monotonic()
 
+    # The robot's MuJoCo model where the backend has one (the mock: telemetry draws the robot with it), else None.
+    model = None
+
+    def body_poses(self):
+        """(positions, quaternions) of every body for the 3D view, where the backend simulates them; else None."""
+        return None
+
+    def link_report(self) -> dict | None:
+        """The backend's bus figures for the run's stats (hw: cycles, lost replies per ID, host stalls), or None."""
+        return None
+
     # Whether `stalled_between` comes from a witness of the host (hw); without one a paced run's late ticks are not
     # attributed to the machine or the loop.
     host_witness = False

@@ -32,6 +32,7 @@ from runtime.kinematic_estimator import FEET
 
 class ReferenceModel(Protocol):
     name: str
+    pinn: OnnxPinn | None  # the ONNX PINN it steps, checked on the measured pose before the motors are enabled
 
     def reset(self) -> None: ...
 
@@ -133,6 +134,7 @@ class NominalReference:
     simulator's truth in a truth-fed one."""
 
     name = "nominal"
+    pinn = None
 
     def __init__(self, config: RobotConfig, base_state: Callable[[], BaseEstimate | GroundTruth | None]):
         nominal = nominal_model(config)

@@ -333,7 +333,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
                               backend.ground_truth, twin_controller=twin_controller, estimator=estimator,
                               paced=realtime)
         summary.gap = build_gap_monitor(config, scheme)
-        pinn_runner = getattr(scheme.reference, "pinn", None)  # checked on the measured pose below
+        pinn_runner = None if scheme.reference is None else scheme.reference.pinn  # checked on the measured pose below
         if controller is None:
             controller, controller_name = build_controller(config, policy, controller_kind)
         else:
@@ -341,7 +341,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         if rerun is not None:
             from runtime.telemetry import make_telemetry  # rerun-sdk loads only when telemetry is on
 
-            telemetry = make_telemetry(config, rerun, model=getattr(backend, "model", None),
+            telemetry = make_telemetry(config, rerun, model=backend.model,
                                        gap=summary.gap is not None)
         if telemetry is not None:
             telemetry.start()  # its threads start before the loop thread asks for real-time scheduling
@@ -406,9 +406,8 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
             if telemetry is not None:
                 telemetry.close()
                 summary.telemetry_dropped = telemetry.dropped
-            link_report = getattr(backend, "link_report", None)
-            if link_report is not None and backend.state is not LifecycleState.UNCONFIGURED:
-                summary.link = link_report()
+            if backend.state is not LifecycleState.UNCONFIGURED:
+                summary.link = backend.link_report()
             backend.shutdown()
         finally:
             stop.restore()
@@ -444,8 +443,8 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     first_now = None
     eq8 = config.eq8
     gap = summary.gap
-    poses = telemetry is not None and hasattr(backend, "body_poses")
-    pose_every = getattr(telemetry, "pose_decimation", 20)
+    poses = telemetry is not None and backend.body_poses() is not None
+    pose_every = telemetry.pose_decimation if telemetry is not None else 0
     events_sent = 0
     clock0 = backend.clock()
     view = TickView(backend, clock0)
