@@ -64,7 +64,6 @@ E-stop or fault, never trips (within 4 s), or the counts disagree, 2 for a bad c
 """  # the --help text
 BEAR_REGISTERS = ("torque_enable", "winding_temperature", "powerstage_temperature", "ic_temperature",
                   "input_voltage")
-DXL_HARDWARE_ERROR, DXL_INPUT_VOLTAGE, DXL_TEMPERATURE = 70, 144, 146  # X-series control table
 TEMPERATURE_WARN_C = 75.0  # BRUCE-OP v0.0.7's warnings (top-level display)
 VOLTAGE_WARN_V = 14.5
 # -- round trips (DESCRIPTION)
@@ -78,7 +77,6 @@ SENSE_MAX_AGE_P99_S = 0.002
 RTT_REPLY_TIMEOUT_S = 0.05    # a slow reply is timed, not lost
 PRESENCE_TIMEOUT_S = 0.02     # the BEAR pings and reads: a device this late is as good as missing
 PRESENCE_TRIES = 3            # requests in a row a device must leave unanswered to be missing: one lost reply is not
-DXL_READ_ADDRESS, DXL_READ_LENGTH = 128, 8  # present velocity (128) and present position (132), 4 bytes each
 
 
 @dataclass
@@ -194,7 +192,13 @@ def _answered(request, *args):
 
 
 def check_dynamixel(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
-    from drivers.dynamixel import decode_hardware_error, decode_status_error
+    from drivers.dynamixel import (
+        ADDR_HARDWARE_ERROR,
+        ADDR_PRESENT_INPUT_VOLTAGE,
+        ADDR_PRESENT_TEMPERATURE,
+        decode_hardware_error,
+        decode_status_error,
+    )
 
     bus_cfg = config.buses.dynamixel
     report = BusReport(f"Dynamixel bus {bus_cfg.port} ({bus_cfg.baud} baud, IDs {ids_text(bus_cfg.ids)})")
@@ -219,9 +223,9 @@ def check_dynamixel(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
                 report.missing.append(dxl_id)
                 report.lines.append(f"ID {dxl_id}: MISSING")
                 continue
-            hardware, r1, _ = _answered(handler.read1ByteTxRx, port, dxl_id, DXL_HARDWARE_ERROR)
-            temperature, r2, _ = _answered(handler.read1ByteTxRx, port, dxl_id, DXL_TEMPERATURE)
-            voltage, r3, _ = _answered(handler.read2ByteTxRx, port, dxl_id, DXL_INPUT_VOLTAGE)
+            hardware, r1, _ = _answered(handler.read1ByteTxRx, port, dxl_id, ADDR_HARDWARE_ERROR)
+            temperature, r2, _ = _answered(handler.read1ByteTxRx, port, dxl_id, ADDR_PRESENT_TEMPERATURE)
+            voltage, r3, _ = _answered(handler.read2ByteTxRx, port, dxl_id, ADDR_PRESENT_INPUT_VOLTAGE)
             if (r1, r2, r3) != (COMM_SUCCESS,) * 3:
                 report.missing.append(dxl_id)
                 report.lines.append(f"ID {dxl_id}: answers ping (model {model}) but not reads")
@@ -385,7 +389,10 @@ def dynamixel_round_trips(port, handler, ids, cycles: int) -> RoundTrips:
     a Protocol 2.0 PacketHandler)."""
     from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead
 
-    reader = GroupSyncRead(port, handler, DXL_READ_ADDRESS, DXL_READ_LENGTH)
+    from drivers.dynamixel import ADDR_PRESENT_POSITION, ADDR_PRESENT_VELOCITY
+
+    # present velocity (128) and present position (132), 4 bytes each
+    reader = GroupSyncRead(port, handler, ADDR_PRESENT_VELOCITY, ADDR_PRESENT_POSITION + 4 - ADDR_PRESENT_VELOCITY)
     for dxl_id in ids:
         reader.addParam(dxl_id)
     trips = RoundTrips(f"sync reads of {len(ids)} servos")
