@@ -16,6 +16,7 @@ import numpy as np
 
 from bruce_hw.backend import Backend, BackendError, LifecycleState
 from bruce_hw.config import RobotConfig
+from bruce_hw.model_binding import JointBinding, bind_joints
 from bruce_hw.reality_gap import ActuatorGap, RealityGap, SensorGap, apply_to_model, latency_ticks
 from bruce_hw.types import FootContacts, GroundTruth, ImuSample, JointCommand, JointState, RobotState
 
@@ -23,13 +24,6 @@ IMU_SENSORS = ("imu_gyro", "imu_accel", "imu_quat")
 CONTACT_THRESHOLD_N = 1.0  # a toe/heel switch closes above this normal force
 AMBIENT_TEMPERATURE_C = 30.0  # the mock has no thermal model; it reports a constant winding temperature
 DAMPING = "damping"  # what a faulted backend sends its motors (through the bus latency of a reality gap)
-
-
-def _contiguous(indices: list[int], what: str, model_file: str) -> slice:
-    if indices != list(range(indices[0], indices[0] + len(indices))):
-        raise BackendError(f"{model_file}: {what} of the config's joints are not contiguous in the model: "
-                           f"{indices}")
-    return slice(indices[0], indices[0] + len(indices))
 
 
 class MujocoBackend(Backend):
@@ -43,6 +37,7 @@ class MujocoBackend(Backend):
         self._sensor_gap: SensorGap | None = None
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
+        self.binding: JointBinding | None = None  # where the config's joints are in the model (after configure)
         self._command: JointCommand | None = None
         self.estop_pressed = False  # the mock's emergency-stop input, reported in every RobotState
         self._push_force = np.zeros(3)
@@ -59,21 +54,8 @@ class MujocoBackend(Backend):
         if abs(model.opt.timestep - cfg.dt) > 1e-12:
             raise BackendError(f"{model_file}: timestep {model.opt.timestep} s does not match the config's "
                                f"loop period 1/rates.loop_hz = {cfg.dt} s")
-        qpos, dofs, acts = [], [], []
-        for name in cfg.joints:
-            jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
-            if jid < 0:
-                raise BackendError(f"{model_file}: no joint named {name!r} (from joints.names)")
-            act = [a for a in range(model.nu)
-                   if model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT and model.actuator_trnid[a, 0] == jid]
-            if len(act) != 1:
-                raise BackendError(f"{model_file}: joint {name!r} needs exactly one motor, found {len(act)}")
-            qpos.append(int(model.jnt_qposadr[jid]))
-            dofs.append(int(model.jnt_dofadr[jid]))
-            acts.append(act[0])
-        self._qpos = _contiguous(qpos, "qpos addresses", model_file)
-        self._dofs = _contiguous(dofs, "dof addresses", model_file)
-        self._acts = _contiguous(acts, "motors", model_file)
+        self.binding = bind_joints(model, cfg.joints, model_file)  # shared with the models built on this one
+        self._qpos, self._dofs, self._acts = self.binding.qpos, self.binding.dofs, self.binding.acts
         self._sensor = {}
         for name in (*IMU_SENSORS, "r_toe", "r_heel", "l_toe", "l_heel"):
             sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, name)

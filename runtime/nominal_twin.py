@@ -59,7 +59,7 @@ class NominalTwin:
         nominal = nominal_model(config)
         self.backend = nominal  # its `_measure` reads the twin's clean sensors
         self.model, self.data = nominal.model, nominal.data
-        self._qpos, self._dofs, self._acts = nominal._qpos, nominal._dofs, nominal._acts
+        self._qpos, self._dofs, self._acts = nominal.binding.qpos, nominal.binding.dofs, nominal.binding.acts
         self._spheres = foot_spheres(self.model)
         self.controller = controller
         self.estimator = KinematicEstimator(config)

@@ -141,7 +141,7 @@ class NominalReference:
         self._nominal, self._standing_pose = nominal, config.standing_pose
         self.model, self.data = nominal.model, nominal.data
         # The backend's own index slices of the config's joints in qpos, qvel and ctrl (checked contiguous there).
-        self._qpos, self._dofs, self._acts = nominal._qpos, nominal._dofs, nominal._acts
+        self._qpos, self._dofs, self._acts = nominal.binding.qpos, nominal.binding.dofs, nominal.binding.acts
         self._spheres = foot_spheres(self.model)
         self._coupling = config.coupling
         self._torque_limit = config.actuator_torque_limit

@@ -42,7 +42,7 @@ def _smallest_inertia(config: RobotConfig) -> np.ndarray:
     mass = np.zeros((model.nv, model.nv))
     mujoco.mj_fullM(model, data, mass)
     inverse = np.linalg.inv(mass)
-    dofs = nominal._dofs
+    dofs = nominal.binding.dofs
     inertia = 1.0 / np.diag(inverse)[dofs]
     inertia.setflags(write=False)
     return inertia

@@ -39,7 +39,7 @@ class TwinMetric(TickObserver):
         nominal = nominal_backend(config, backend.ground_truth, f"twin metric: needs the simulator's state, which "
                                   f"the {backend.name} backend does not have (mock only)")
         self.model, self.data = nominal.model, nominal.data
-        self._qpos, self._dofs, self._acts = nominal._qpos, nominal._dofs, nominal._acts
+        self._qpos, self._dofs, self._acts = nominal.binding.qpos, nominal.binding.dofs, nominal.binding.acts
         self.eq8, self.coupling, self.torque_limit = config.eq8, config.coupling, config.actuator_torque_limit
         if self.window_ticks is None:
             self.window_ticks = config.policy_decimation

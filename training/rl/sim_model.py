@@ -17,6 +17,7 @@ import numpy as np
 
 from bruce_hw.config import RobotConfig
 from bruce_hw.mock import IMU_SENSORS, MujocoBackend
+from bruce_hw.model_binding import bind_joints
 from runtime.walking.leg_ik import SIDES
 
 FOOT_SITES = tuple(f"{side}_sole" for side in SIDES)          # the mock's soles: foot position and velocity
@@ -67,12 +68,6 @@ def _pd_actuator(actuator: mujoco.MjsActuator, kp: float, kd: float, limit: floa
     actuator.forcerange[:] = (-limit, limit)
 
 
-def _contiguous(indices: list[int]) -> slice:
-    if indices != list(range(indices[0], indices[0] + len(indices))):
-        raise AssertionError(f"not contiguous: {indices}")  # the mock refuses such a model before this
-    return slice(indices[0], indices[0] + len(indices))
-
-
 def _span(model: mujoco.MjModel, names: list[str]) -> slice:
     """The contiguous sensordata of the named sensors, in order."""
     ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, n) for n in names]
@@ -116,11 +111,9 @@ def build_sim_model(config: RobotConfig) -> SimModel:
     model = spec.compile()
     foot_geoms = np.array([g for g in range(model.ngeom) if model.geom_contype[g]
                            and model.body(model.geom_bodyid[g]).name.endswith("_foot")])
-    joints = [model.joint(name) for name in config.joints]
+    binding = bind_joints(model, config.joints, str(config.mjcf))  # the PD actuators are the joints' motors still
     return SimModel(
-        model=model, qpos=_contiguous([int(j.qposadr[0]) for j in joints]),
-        dofs=_contiguous([int(j.dofadr[0]) for j in joints]),
-        acts=_contiguous([model.actuator(name).id for name in motors]),
+        model=model, qpos=binding.qpos, dofs=binding.dofs, acts=binding.acts,
         base_body=model.body("base").id, floor_geom=model.geom(FLOOR_GEOM).id, foot_geoms=foot_geoms,
         foot_pos=_span(model, [f"{s}_pos" for s in FOOT_SITES]),
         foot_vel=_span(model, [f"{s}_vel" for s in FOOT_SITES]),
