@@ -29,9 +29,9 @@ import time
 
 import numpy as np
 
+from bruce_hw.emulator_process import EmulatorProcess
 from drivers.bear import BearBus
 from drivers.bear_registers import Mode
-from runtime.emulate_cli import EmulatorProcess
 
 MODES = {"floor": (), "plain": (), "lockstep": ("--lockstep",), "realtime": ("--realtime",),
          "realtime+lockstep": ("--realtime", "--lockstep")}

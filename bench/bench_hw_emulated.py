@@ -42,8 +42,8 @@ from stall_witness import Witness
 
 from bruce_hw.backend import BackendError
 from bruce_hw.config import load_config
+from bruce_hw.emulator_process import EmulatorProcess, FaultAt, reply_time
 from bruce_hw.hw import make_hw_backend
-from runtime.emulate_cli import EmulatorProcess, FaultAt, reply_time
 from runtime.run import run_session
 
 BULK_RATE_GOAL_HZ = 990.0

@@ -12,12 +12,13 @@ import numpy as np
 import pytest
 import serial
 
+from bruce_hw.emulator_process import EmulatorProcess
 from drivers.bear import BearBus
 from drivers.dynamixel import INST_PING, encode_packet
 from drivers.emulators.reply_delay import ReplyDelay, check_delay, wait_until
 from drivers.emulators.sense import SenseBoardEmulator
 from drivers.sense import SenseBoard
-from runtime.emulate_cli import EmulatorProcess, main
+from runtime.emulate_cli import main
 
 IDS = list(range(1, 11))
 PING_REPLY_LEN = 14  # FF FF FD 00, ID, LEN (2), 0x55, error, model (2), firmware, CRC (2)

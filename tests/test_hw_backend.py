@@ -24,8 +24,8 @@ from bruce_hw import BackendError, JointCommand, LifecycleState
 from bruce_hw.attitude import MahonyAttitude
 from bruce_hw.bear_legs import actuator_position_limits
 from bruce_hw.config import load_config
+from bruce_hw.emulator_process import FaultAt, reply_time
 from bruce_hw.hw import HwBackend, make_hw_backend, missing_for_hw
-from runtime.emulate_cli import FaultAt, reply_time
 from runtime.exit import ExitCode
 from runtime.observers import TickObserver
 from runtime.run import run_session

@@ -19,8 +19,8 @@ import pytest
 from conftest import BEAR_IDS, DXL_IDS, WALL_CLOCK_SLACK
 
 from bruce_hw import BackendError
+from bruce_hw.emulator_process import FaultAt, reply_time
 from bruce_hw.hw import HwBackend, make_hw_backend
-from runtime.emulate_cli import FaultAt, reply_time
 from runtime.exit import ExitCode, StopFlag
 from runtime.run import run_session
 
@@ -180,7 +180,7 @@ def test_devices_that_vanish_mid_run_end_in_one_line_with_the_bus_exit_code(tmp_
     """The emulator killed mid-run, its pseudo-terminals gone (a USB adapter pulled): bruce-run ends with exit code
     4 (bus) and one line naming it, its stats written, and no traceback from the shutdown's damping of ports that
     no longer exist (termios.error from tcflush was one)."""
-    from runtime.emulate_cli import EmulatorProcess
+    from bruce_hw.emulator_process import EmulatorProcess
 
     emulator = EmulatorProcess("--realtime", "--lockstep")
     stats = tmp_path / "stats.json"
