@@ -192,13 +192,8 @@ def _answered(request, *args):
 
 
 def check_dynamixel(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
-    from drivers.dynamixel import (
-        ADDR_HARDWARE_ERROR,
-        ADDR_PRESENT_INPUT_VOLTAGE,
-        ADDR_PRESENT_TEMPERATURE,
-        decode_hardware_error,
-        decode_status_error,
-    )
+    from drivers.dynamixel_codec import decode_hardware_error, decode_status_error
+    from drivers.dynamixel_registers import ADDR_HARDWARE_ERROR, ADDR_PRESENT_INPUT_VOLTAGE, ADDR_PRESENT_TEMPERATURE
 
     bus_cfg = config.buses.dynamixel
     report = BusReport(f"Dynamixel bus {bus_cfg.port} ({bus_cfg.baud} baud, IDs {ids_text(bus_cfg.ids)})")
@@ -389,7 +384,7 @@ def dynamixel_round_trips(port, handler, ids, cycles: int) -> RoundTrips:
     a Protocol 2.0 PacketHandler)."""
     from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead
 
-    from drivers.dynamixel import ADDR_PRESENT_POSITION, ADDR_PRESENT_VELOCITY
+    from drivers.dynamixel_registers import ADDR_PRESENT_POSITION, ADDR_PRESENT_VELOCITY
 
     # present velocity (128) and present position (132), 4 bytes each
     reader = GroupSyncRead(port, handler, ADDR_PRESENT_VELOCITY, ADDR_PRESENT_POSITION + 4 - ADDR_PRESENT_VELOCITY)

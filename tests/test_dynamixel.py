@@ -20,8 +20,8 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from bruce_hw.config import load_config
-from drivers.dynamixel import (
-    BUS_WATCHDOG_UNIT_S,
+from drivers.dynamixel import DynamixelArms, collect_status
+from drivers.dynamixel_codec import (
     ERR_ACCESS,
     ERR_CRC,
     ERR_DATA_LENGTH,
@@ -31,22 +31,23 @@ from drivers.dynamixel import (
     ERR_RESULT_FAIL,
     INST_PING,
     INST_STATUS,
-    POSITION_UNIT,
-    VELOCITY_UNIT,
-    DynamixelArms,
     Packet,
     PacketParser,
-    collect_status,
-    counts_to_joint,
     crc16,
     decode_hardware_error,
     decode_status_error,
     encode_packet,
     encode_status,
-    indirect_read_map,
-    joint_to_counts,
     stuff,
     unstuff,
+)
+from drivers.dynamixel_registers import (
+    BUS_WATCHDOG_UNIT_S,
+    POSITION_UNIT,
+    VELOCITY_UNIT,
+    counts_to_joint,
+    indirect_read_map,
+    joint_to_counts,
     watchdog_counts,
 )
 from drivers.emulators.dynamixel import MAX_EVENTS, XM430_W350, DynamixelBusEmulator

@@ -11,7 +11,7 @@ import serial
 from bruce_hw.config import load_config
 from bruce_hw.emulator_process import EmulatorProcess, parse_event, reply_time
 from drivers.bear import BearBus, encode_ping
-from drivers.dynamixel import INST_PING, encode_packet
+from drivers.dynamixel_codec import INST_PING, encode_packet
 from drivers.errors import BusTimeout
 from drivers.sense import encode_command
 from runtime.emulate_cli import execute, status

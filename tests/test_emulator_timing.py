@@ -14,7 +14,7 @@ import serial
 
 from bruce_hw.emulator_process import EmulatorProcess
 from drivers.bear import BearBus
-from drivers.dynamixel import INST_PING, encode_packet
+from drivers.dynamixel_codec import INST_PING, encode_packet
 from drivers.emulators.reply_delay import ReplyDelay, check_delay, wait_until
 from drivers.emulators.sense import SenseBoardEmulator
 from drivers.sense import SenseBoard

@@ -24,11 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.dynamixel import (
+from drivers.dynamixel_codec import (
     BROADCAST_ID,
-    BUS_WATCHDOG_ERROR,
-    BUS_WATCHDOG_MAX,
-    BUS_WATCHDOG_UNIT_S,
     ERR_ACCESS,
     ERR_CRC,
     ERR_DATA_LENGTH,
@@ -51,12 +48,17 @@ from drivers.dynamixel import (
     INST_SYNC_WRITE,
     INST_WRITE,
     MAX_ID,
-    POSITION_UNIT,
     Packet,
     PacketParser,
-    counts_to_joint,
     encode_hardware_error,
     encode_status,
+)
+from drivers.dynamixel_registers import (
+    BUS_WATCHDOG_ERROR,
+    BUS_WATCHDOG_MAX,
+    BUS_WATCHDOG_UNIT_S,
+    POSITION_UNIT,
+    counts_to_joint,
     joint_velocity_to_counts,
 )
 from drivers.emulators.pty_device import PtyDevice
