@@ -77,7 +77,7 @@ def test_02_configuration_and_limits_write_and_read_back(bringup_config):
 
 
 def test_03_the_bear_watchdog_unit_is_what_the_config_says(bringup_config):
-    from bruce_hw.hw_check import run_watchdog_probe
+    from bruce_hw.watchdog_probe import run_watchdog_probe
 
     if bringup_config.buses.can.motors:
         pytest.skip("CAN legs: the probe is for BEARs")

@@ -10,7 +10,8 @@ import time
 
 import pytest
 
-from bruce_hw.hw_check import ProbeError, main, probe_watchdog
+from bruce_hw.hw_check import main
+from bruce_hw.watchdog_probe import ProbeError, probe_watchdog
 from drivers.bear import BearBus
 from drivers.emulators import bear as bear_emulator
 from drivers.emulators.bear import BearBusEmulator
