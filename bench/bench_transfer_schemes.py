@@ -1,7 +1,7 @@
 """Tick cost of every transfer scheme next to Eq. 9's, measured in one run (issue #20).
 
 The inputs are a real walk: 2 s of the committed policy at 0.4 m/s on the `default` gap under direct transfer
-(`training.evaluation.transfer_eval.run_one`), replayed tick by tick. Each scheme is driven exactly as the loop
+(`training.evaluation.transfer_runs.run_one`), replayed tick by tick. Each scheme is driven exactly as the loop
 drives it (`predict(a, q, qd, tau*, command)`, then `torque(tau*, q, qd)`); the timed part is those two calls,
 split into the model work (`predict`, the loop's `pinn` section) and the mixing (`torque`). The schemes run
 interleaved in blocks of one replay each, the garbage collector off, so a slow moment of a shared machine falls on
@@ -32,7 +32,7 @@ COMMAND = (0.4, 0.0, 0.0)
 
 def recorded_walk(seconds: float):
     """(a, q, qd, tau*) per tick of a direct-transfer walk on the default gap; a from Eq. 8 inverted."""
-    from training.evaluation.transfer_eval import RunSpec, run_one
+    from training.evaluation.transfer_runs import RunSpec, run_one
 
     config = load_config()
     record = run_one(RunSpec(experiment="tracking", command=COMMAND, seconds=seconds, mode="direct",

@@ -188,7 +188,7 @@ def test_fall_stop_ends_the_run_on_the_tick_it_fell(config):
 
 # -- the twin metric -------------------------------------------------------------------------------------------
 def twin_run(gap_name: str | None, seconds: float = TRACKING_SKIP_S + 0.5):
-    from training.evaluation.transfer_eval import RunSpec, run_one
+    from training.evaluation.transfer_runs import RunSpec, run_one
 
     gap = dataclasses.replace(load_gap(gap_name), seed=0) if gap_name else None
     with contextlib.redirect_stdout(io.StringIO()):
@@ -196,7 +196,8 @@ def twin_run(gap_name: str | None, seconds: float = TRACKING_SKIP_S + 0.5):
 
 
 def test_the_twin_metric_is_zero_when_the_robot_is_the_simulator_and_not_with_a_gap():
-    from training.evaluation.transfer_eval import EXPERIMENTS, run_metrics
+    from training.evaluation.transfer_metrics import run_metrics
+    from training.evaluation.transfer_runs import EXPERIMENTS
 
     same = twin_run("none")
     assert same.twin_rmse_per_joint.shape == (10,) and np.all(same.twin_rmse_per_joint < 1e-9)

@@ -9,14 +9,11 @@ import numpy as np
 import pytest
 
 from bruce_hw.reality_gap import load_gap
-from training.evaluation import transfer_eval
+from training.evaluation import transfer_eval, transfer_runs
 from training.evaluation.cli import main as eval_main
 from training.evaluation.transfer_cache import spec_key
-from training.evaluation.transfer_eval import (
-    EXPERIMENTS,
-    RunRecord,
-    RunSpec,
-    TransferSettings,
+from training.evaluation.transfer_eval import TransferSettings, plan_suite
+from training.evaluation.transfer_metrics import (
     aggregate,
     circle_deviation,
     deviation_from_simulator,
@@ -25,8 +22,8 @@ from training.evaluation.transfer_eval import (
     ideal_path,
     joint_rmse,
     offset_and_shape,
-    plan_suite,
 )
+from training.evaluation.transfer_runs import EXPERIMENTS, RunRecord, RunSpec
 
 DT = 1e-3
 
@@ -301,7 +298,7 @@ def test_a_cached_record_reads_back_with_its_fall(tmp_path, fall_time):
     kept.fell, kept.fall_time = fall_time is not None, fall_time
     cache = RunCache(tmp_path)
     cache.save_record("k", kept)
-    back = cache.record("k", kept.spec, transfer_eval.RunRecord)
+    back = cache.record("k", kept.spec, RunRecord)
     assert back.fell is kept.fell and back.fall_time == fall_time
     np.testing.assert_array_equal(back.xy, kept.xy)
 
@@ -320,7 +317,7 @@ def test_a_run_cut_short_by_a_signal_is_not_a_result(monkeypatch):
     monkeypatch.setattr(runtime.run, "run_session", stopped)
     spec = RunSpec("tracking", (0.4, 0.0, 0.0), 1.0, "direct", load_gap("default"))
     with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
-        transfer_eval.run_one(spec)
+        transfer_runs.run_one(spec)
 
 
 def test_cache_key_changes_with_the_robot_config_and_not_with_where_it_lives(tmp_path):

@@ -6,7 +6,7 @@ import pytest
 
 from training.evaluation.cli import main as eval_main
 from training.evaluation.transfer_acceptance import acceptance, latency_tolerance, recommended
-from training.evaluation.transfer_eval import mode_label, scheme_of
+from training.evaluation.transfer_runs import mode_label, scheme_of
 
 
 def test_modes_name_a_scheme_and_optionally_the_perfect_model():

@@ -29,7 +29,7 @@ from bruce_hw.config import ConfigError, RobotConfig, load_config
 from bruce_hw.types import GroundTruth
 from runtime.recorder import LOG_FORMAT, LOG_VERSION, META_FILE, RunRecorder, describe_run, file_sha256
 from training.evaluation.report import json_safe
-from training.evaluation.transfer_eval import joint_rmse, offset_and_shape
+from training.evaluation.transfer_metrics import joint_rmse, offset_and_shape
 
 SIMULATION_DIR = "simulation"
 FIGURE = "fig6_replay.png"
