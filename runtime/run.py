@@ -444,6 +444,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     eq8 = config.eq8
     gap = summary.gap
     poses = telemetry is not None and backend.body_poses() is not None
+    witnessed, last_now = backend.host_witness, backend.clock()  # host stalls go to the telemetry's events
     pose_every = telemetry.pose_decimation if telemetry is not None else 0
     events_sent = 0
     clock0 = backend.clock()
@@ -529,6 +530,11 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
                     for _, text in safety.transitions[events_sent:]:
                         telemetry.event(tick, elapsed, text, "info")
                     events_sent = len(safety.transitions)
+                if witnessed:  # a host stall since the last tick: on the timeline, where it happened
+                    stalled = backend.stalled_between(last_now, now)
+                    if stalled > 0.0:
+                        telemetry.event(tick, elapsed, f"host stall: not run for {1e3 * stalled:.1f} ms", "warn")
+                last_now = now
             t8, c8 = perf(), cpu()
             if observers:  # evaluation only: in the tick's work, in no section
                 view.fill(tick, now, robot, command, a, tau_star, tau)

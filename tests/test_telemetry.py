@@ -559,3 +559,35 @@ def test_a_run_with_a_reference_model_streams_its_gap_monitor(config, tmp_path):
 
     summary = json.loads(stats.read_text())
     assert summary["gap_samples"] == 199 and summary["gap_residual_rms"]["r_knee"] > 0
+
+
+def test_a_host_stall_is_an_event_on_the_timeline(tmp_path):
+    """A host stall the backend's witness saw goes to the safety/events log at the tick after it, with its length
+    (here a backend whose witness reports 10 ms not run before its 100th reading: within the bound, ridden through)."""
+    from bruce_hw import load_config
+    from bruce_hw.echo import EchoBackend
+    from runtime.run import run_session
+
+    class StalledOnce(EchoBackend):
+        host_witness = True
+
+        def __init__(self, config):
+            super().__init__(config)
+            self.reads, self.stall_at = 0, None
+
+        def _read(self):
+            state = super()._read()
+            self.reads += 1
+            if self.reads == 100:
+                self.stall_at = self.clock()
+            return state
+
+        def stalled_between(self, t0, t1):
+            return 0.010 if self.stall_at is not None and t0 < self.stall_at <= t1 else 0.0
+
+    config = load_config()
+    path = tmp_path / "run.rrd"
+    run_session(StalledOnce(config), config, duration=0.3, realtime=False, controller_kind="standing",
+                rerun=parse_sink(f"save={path}"))
+    events = [text for texts in rrd_rows(path, "safety/events", "TextLog:text").values() for text in texts]
+    assert events.count("host stall: not run for 10.0 ms") == 1, events
