@@ -55,6 +55,8 @@ class LoopStats:
         self.data_age = Histogram()  # age of the oldest joint or IMU sample when the tick read it
         self.sections = {name: Histogram() for name in sections}
         self.cpu_sections = {name: Histogram() for name in sections}  # each section's CPU time, as `cpu` the tick's
+        self._wall_list = [self.sections[name] for name in SECTIONS]  # add_sections' order
+        self._cpu_list = [self.cpu_sections[name] for name in SECTIONS]
         self.period_s: float | None = None  # the loop's period, for CPU time as a share of it
         self.ticks = 0
         self.loop_s = 0.0  # from the first tick's start to the last one's (the achieved rate is ticks / loop_s)
@@ -63,6 +65,20 @@ class LoopStats:
         self.late_machine: int | None = None  # late ticks with a host stall in them (None: not attributed)
         self.skipped_ticks = 0
         self._worst: list[int] = []  # min-heap of the largest lateness values (ns)
+
+    def add_sections(self, wall: tuple[int, ...], cpu: tuple[int, ...]) -> None:
+        """One tick's sections from its nine marks (ns) on each clock: before read, after read, policy, Eq. 8,
+        PINN, mixing, safety, write and telemetry. Mixing is Eq. 8 and the scheme's torque together."""
+        for marks, hists in ((wall, self._wall_list), (cpu, self._cpu_list)):
+            m0, m1, m2, m3, m4, m5, m6, m7, m8 = marks
+            read, policy, pinn, mixing, safety, write, telemetry = hists
+            read.add(m1 - m0)
+            policy.add(m2 - m1)
+            pinn.add(m4 - m3)
+            mixing.add(m3 - m2 + m5 - m4)
+            safety.add(m6 - m5)
+            write.add(m7 - m6)
+            telemetry.add(m8 - m7)
 
     def overrun(self, behind_ns: int, at_s: float | None = None) -> None:
         """A late tick, `behind_ns` past its deadline, started at monotonic `at_s`."""

@@ -426,13 +426,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
           telemetry, summary: RunSummary, stop: StopFlag, duration: float | None, realtime: bool,
           observers: tuple[TickObserver, ...] = (), sealed: bool = False) -> None:
     """The ticks. `sealed`: the backend's truth is sealed, and opened only while the observers run."""
-    stats = summary.loop
-    sections = stats.sections
-    h_read, h_policy, h_pinn, h_mix = sections["read"], sections["policy"], sections["pinn"], sections["mixing"]
-    h_safety, h_write, h_tel = sections["safety"], sections["write"], sections["telemetry"]
-    cpu_sections = stats.cpu_sections  # the same sections on the thread's CPU clock (the loop's own cost)
-    k_read, k_policy, k_pinn, k_mix = (cpu_sections[n] for n in ("read", "policy", "pinn", "mixing"))
-    k_safety, k_write, k_tel = (cpu_sections[n] for n in ("safety", "write", "telemetry"))
+    stats = summary.loop  # each section timed on the wall clock and on the thread's CPU clock (the loop's own cost)
     stats.period_s = config.dt
     safety = SafetyStage(config, stalled=backend.stalled_between)
     n_ticks = None if duration is None else round(duration * config.loop_hz)
@@ -544,20 +538,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
                     if cause:
                         observer_stop = observer_stop or cause
                 backend.truth_sealed = sealed
-            h_read.add(t1 - t0)
-            h_policy.add(t2 - t1)
-            h_pinn.add(t4 - t3)
-            h_mix.add(t3 - t2 + t5 - t4)
-            h_safety.add(t6 - t5)
-            h_write.add(t7 - t6)
-            h_tel.add(t8 - t7)
-            k_read.add(c1 - c0)
-            k_policy.add(c2 - c1)
-            k_pinn.add(c4 - c3)
-            k_mix.add(c3 - c2 + c5 - c4)
-            k_safety.add(c6 - c5)
-            k_write.add(c7 - c6)
-            k_tel.add(c8 - c7)
+            stats.add_sections((t0, t1, t2, t3, t4, t5, t6, t7, t8), (c0, c1, c2, c3, c4, c5, c6, c7, c8))
             stats.work.add(perf() - t0)
             stats.cpu.add(cpu() - c0)
             if tick:
