@@ -123,7 +123,7 @@ class MujocoBackend(Backend):
         self._push_until = -1.0  # mj_resetData cleared the applied force
         if self._actuator_gap is not None:
             self._actuator_gap.reset()
-            self._sensor_gap.reset(self._measure)
+            self._sensor_gap.reset(self.measure)
 
     def push(self, impulse: np.ndarray, duration: float = 0.1) -> None:
         """Push the base: a constant world-frame force impulse / duration (N) on the base's centre of mass for the
@@ -163,11 +163,12 @@ class MujocoBackend(Backend):
             if not pushing:
                 self._push_until = -1.0
         mujoco.mj_step(self.model, data)
-        state = self._measure()
+        state = self.measure()
         return state if self._sensor_gap is None else self._sensor_gap.report(state)
 
-    def _measure(self) -> RobotState:
-        """What the sensors read now (fresh arrays)."""
+    def measure(self) -> RobotState:
+        """What the model's sensors read now, noise-free (fresh arrays; no step): a nominal model's own sensors, for
+        the twin's estimator."""
         data = self.data
         t = data.time
         s = data.sensordata

@@ -71,7 +71,7 @@ CAN configs: python-can's `virtual` interface reaches only this process, so run 
 `bruce-emulate --config configs/robots/bruce_can.yaml --run [bruce-run options]` (--run works for every config).
 In one process the host, the four motor threads and the physics share one GIL and an emulated CAN round trip takes
 about a millisecond: that needs --set buses.can.timeout_s=0.005 and does not keep 1 kHz. Across processes,
---can-interface socketcan on vcan channels (not tried here: this machine has no vcan).
+--can-interface socketcan on vcan channels (a Linux vcan interface: `ip link add dev vcan0 type vcan`).
 """  # the --help text
 # The emulators' threads (pty servers, sense-board firmware, plant) answer within a fraction of a millisecond only
 # if none of them can hold the GIL for long (CPython's default: 5 ms). A pty thread woken by a request waits for the

@@ -57,7 +57,7 @@ class NominalTwin:
 
     def __init__(self, config: RobotConfig, controller):
         nominal = nominal_model(config)
-        self.backend = nominal  # its `_measure` reads the twin's clean sensors
+        self.backend = nominal  # its `measure` reads the twin's clean sensors
         self.model, self.data = nominal.model, nominal.data
         self._qpos, self._dofs, self._acts = nominal.binding.qpos, nominal.binding.dofs, nominal.binding.acts
         self._spheres = foot_spheres(self.model)
@@ -96,7 +96,7 @@ class NominalTwin:
             else:
                 own = None
                 if not first and not self.from_truth and self.differential:
-                    self.estimator.update(self.backend._measure())  # the twin's own estimate at this tick
+                    self.estimator.update(self.backend.measure())  # the twin's own estimate at this tick
                     own = self.estimator.estimate()
                 place_from_estimate(self.model, data, self._qpos, self._dofs, resync.estimate, step.q, step.qd,
                                     self._spheres, own)
@@ -104,7 +104,7 @@ class NominalTwin:
             self.from_truth = isinstance(resync, GroundTruth)
             if step.sent is not None:
                 self.safety.previous = np.array(step.sent, dtype=float)
-        state = self.backend._measure()
+        state = self.backend.measure()
         if first:
             self.controller.reset(state.joints.q)
         if resync is None and not self.from_truth:  # a resync tick's measurement is in the robot's estimate already

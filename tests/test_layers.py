@@ -70,3 +70,34 @@ def test_the_walker_sees_imports_inside_functions(tmp_path):
     """The checks above would pass vacuously if the walker missed lazy imports: it must see this project's."""
     edges = project_imports()["runtime.emulate_cli"]
     assert any(t == "bruce_hw.emulated_plant" for t, _ in edges)  # imported inside main()
+
+
+def _private_members_of_the_mock() -> set[str]:
+    """The mock's private attributes and methods: `self._x = ...` in bruce_hw/mock.py and its `def _x` (not the
+    lifecycle hooks `_on_*`, `_read`, `_write` that the Backend base calls)."""
+    tree = ast.parse((ROOT / "bruce_hw" / "mock.py").read_text())
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "self" \
+                and isinstance(node.ctx, ast.Store) and node.attr.startswith("_"):
+            names.add(node.attr)
+        if isinstance(node, ast.FunctionDef) and node.name.startswith("_") and not node.name.startswith("__"):
+            names.add(node.name)
+    return names - {"_read", "_write", "_ground_truth"} - {n for n in names if n.startswith("_on_")}
+
+
+def test_no_module_outside_the_mock_reads_its_private_state():
+    """The transfer stage, the RL environment and the tools use the mock's public model binding and methods
+    (`binding`, `model`, `data`, `measure`, `place`); a subclass may use its own `self._...`."""
+    private = _private_members_of_the_mock()
+    assert {"_qpos", "_dofs", "_acts"} <= private  # the walker finds them
+    found = []
+    for layer in (*LAYERS, "bench"):
+        for path in (ROOT / layer).rglob("*.py"):
+            if path == ROOT / "bruce_hw" / "mock.py":
+                continue
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.Attribute) and node.attr in private and \
+                        not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls")):
+                    found.append(f"{path.relative_to(ROOT)}:{node.lineno} .{node.attr}")
+    assert not found, "\n".join(found)
