@@ -140,6 +140,8 @@ class VelocityTracking:
 
     @property
     def rmse(self) -> dict[str, float] | None:
+        """RMS of v - cmd over every tick: the step-by-step sway (a walking base's yaw rate swings ~1 rad/s within each
+        step) as much as tracking; `error` is what tracks."""
         return self._per_axis(np.sqrt(self.squared_error_sum / max(self.samples, 1)))
 
     def to_json(self) -> dict:
@@ -152,7 +154,8 @@ class VelocityTracking:
 
         return (f"  velocity after {TRACKING_SKIP_S:g} s (vx/vy m/s, wz rad/s, {self.samples} samples): command mean "
                 f"{triple(self.command_mean, '+')}, measured mean {triple(self.measured_mean, '+')}\n"
-                f"    tracking error |mean(v) - mean(cmd)| {triple(self.error)}, rmse {triple(self.rmse)}")
+                f"    tracking error |mean(v) - mean(cmd)| {triple(self.error)}; rms of v - cmd per tick (the gait's "
+                f"sway within each step included) {triple(self.rmse)}")
 
 
 @dataclass
