@@ -187,12 +187,13 @@ def hw_config(emulator):
 
 # Modules whose tests walk the mock for seconds, train or export networks, or drive the emulated buses: left out of
 # the fast subset, `pytest -m "not slow and not hardware and not realtime"` (README), which runs in under a minute.
+# A module of fast unit tests with a few slow ones marks those itself (`@pytest.mark.slow`) and stays out of this list.
 SLOW_MODULES = {
     "test_walking", "test_kinematic_estimator", "test_transfer_eval", "test_transfer_eval_schemes", "test_distill",
     "test_collect", "test_observers", "test_hw_backend", "test_hw_safety", "test_hw_check", "test_emulator_timing",
     "test_emulator_cli", "test_train_dynamics", "test_pinn_export", "test_lstm_baseline", "test_analytic",
     "test_evaluate", "test_telemetry", "test_bear_reply_loss", "test_reality_gap", "test_run_outcomes", "test_cli",
-    "test_loop", "test_transfer_schemes", "test_standing", "test_olnn", "test_commands", "test_rl_train",
+    "test_loop", "test_standing", "test_olnn", "test_rl_train",
     "test_replay", "test_web_viewer", "test_robot_faithful", "test_host_stalls",
     "test_bringup_emulated",
 }

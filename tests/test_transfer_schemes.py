@@ -167,6 +167,7 @@ def test_a_scheme_whose_model_is_the_plant_adds_no_torque_in_steady_state(kind):
     np.testing.assert_allclose(tau, tau_star, atol=1e-9)  # ... and the scheme adds nothing
 
 
+@pytest.mark.slow
 def test_observer_makes_a_disturbed_plant_settle_where_the_model_does():
     inertia = np.array([0.004, 0.002])
     target = np.array([0.3, -0.2])
@@ -196,6 +197,7 @@ class BiasedModel(InertiaPlant):
         return q_next, qd_next + self.bias
 
 
+@pytest.mark.slow
 def test_a_calibrated_model_bias_is_not_integrated_into_a_posture_offset():
     inertia, target = np.array([0.004, 0.002]), np.array([0.3, -0.2])
     bias = np.array([0.1, -0.05])  # rad/s per tick: what the gap monitor's mean residual measures on the simulator
@@ -578,6 +580,7 @@ def test_where_the_robot_is_the_simulator_the_twin_is_the_robot_and_adds_no_torq
     assert integral.max() < 1e-12  # N·m: rounding
 
 
+@pytest.mark.slow
 def test_a_twin_resynchronised_from_the_estimator_stays_with_the_simulator():
     """Robot-faithful: the twin is set from the robot's estimate, not its truth (the base's height, yaw and position
     are the twin's own; its attitude and velocities its own moved by the difference between the robot's estimate
