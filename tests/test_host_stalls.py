@@ -2,10 +2,11 @@
 `bruce-emulate --lockstep`, its whole process stopped with SIGSTOP for a set time and continued (every thread stops
 at once, as when a VM is not run), while the emulated devices go on with their own clocks and watchdogs.
 
-Each test asserts how the run ends, what every motor ends in, and the host-stall counters. The age and rate bounds
-are the shipped ones but for a wider data age (20 ms, still below every freeze), so that an emulator kept off the
-CPU of this shared machine is not taken for a silent device; the stall bound is set to 45 ms (below the BEARs'
-50 ms watchdog) so a freeze of 30 ms lies well inside it and one of 80 ms well outside.
+Each test asserts how the run ends, what every motor ends in, and the host-stall counters. The rate floor is the
+shipped one (500 Hz over 50 ms: a 30-ms freeze trips it unless the freeze is discounted as a host stall); the data
+age is 50 ms, as in the other emulator tests, since the emulator's own packets are sometimes tens of milliseconds late
+on a shared machine (device lateness, which no host-side rule may excuse); the stall bound is 45 ms (below the BEARs'
+50 ms watchdog), so a freeze of 30 ms lies inside it and one of 80 ms well outside.
 """
 
 import json
@@ -21,7 +22,7 @@ from runtime.exit import ExitCode
 
 pytestmark = pytest.mark.usefixtures("no_memory_lock")
 STALL_BOUND_S = 0.045
-SETTINGS = ["safety.max_sensor_age_s=0.02", "buses.bear.reply_timeout_s=0.004",
+SETTINGS = ["safety.max_sensor_age_s=0.05", "buses.bear.reply_timeout_s=0.004",
             f"safety.host_stall_max_s={STALL_BOUND_S}"]
 
 
