@@ -24,7 +24,7 @@ import numpy as np
 from bruce_hw.config import TRANSFER_SCHEMES, load_config
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.reality_gap import load_gap
-from runtime.transfer_schemes import EQ9_ALIASES, build_scheme
+from runtime.transfer.schemes import EQ9_ALIASES, build_scheme
 
 RATIO_GOAL = 2.0
 COMMAND = (0.4, 0.0, 0.0)

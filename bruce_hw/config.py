@@ -134,7 +134,7 @@ class ModelsConfig:
     # actuators' latency: a torque sent now acts that many ticks later.
     pinn_lookahead_ticks: int = 0
     # The PINN's mean one-step velocity error on the simulator itself (predicted minus simulated qd, rad/s, per
-    # joint; None: not measured), which the residual observer takes off (runtime/transfer_schemes.py).
+    # joint; None: not measured), which the residual observer takes off (runtime/transfer/schemes.py).
     pinn_residual_bias: np.ndarray | None = None
     # The policy's observation/action spec (runtime/policy_spec.py); None: its sidecar's, else Table I.
     policy_spec: Path | None = None
@@ -149,19 +149,19 @@ class EstimatorConfig:
     level_from_feet_s: float = 0.0
 
 
-TRANSFER_SCHEMES = ("direct", "pinn", "eq9", "shadow", "observer", "twin", "shadow_twin")  # runtime/transfer_schemes.py
-REFERENCE_MODELS = ("pinn", "nominal")                             # runtime/reference_models.py
+TRANSFER_SCHEMES = ("direct", "pinn", "eq9", "shadow", "observer", "twin", "shadow_twin")  # runtime/transfer/schemes.py
+REFERENCE_MODELS = ("pinn", "nominal")                             # runtime/transfer/reference_models.py
 
 
 @dataclass(frozen=True, slots=True)
 class TransferConfig:
     """The transfer stage (`transfer` section, optional): the scheme `bruce-run` uses without --transfer, its
-    reference model and settings, and the gap monitor's (runtime/transfer_schemes.py, runtime/gap_monitor.py)."""
+    reference model and settings, and the gap monitor's (runtime/transfer/: schemes.py, gap_monitor.py)."""
 
     scheme: str = "direct"
     reference_model: str = "pinn"
     delay_margin_s: float = 0.009        # the loop delay the feedback schemes are designed to tolerate ...
-    phase_margin_deg: float = 45.0       # ... with this phase margin left (runtime/transfer_gains.py)
+    phase_margin_deg: float = 45.0       # ... with this phase margin left (runtime/transfer/gains.py)
     shadow_resync_ticks: int = 10
     observer_time_constant_s: float = 0.2
     observer_clip: float = 0.25          # share of joints.torque_limits
@@ -590,7 +590,7 @@ def _transfer(r: YamlReader, loop_hz: int) -> TransferConfig:
             values[name] = r.number(f"transfer.{name}")
     delay = values.get("delay_margin_s", default.delay_margin_s)
     phase = math.radians(values.get("phase_margin_deg", default.phase_margin_deg))
-    shortest = delay / (math.pi / 2 - phase)  # runtime/transfer_gains.py: the integrator's phase margin
+    shortest = delay / (math.pi / 2 - phase)  # runtime/transfer/gains.py: the integrator's phase margin
     narrowed = {
         "observer.time_constant_s": bound_for("transfer.observer.time_constant_s").narrowed(
             "at least transfer.delay_margin_s / (pi/2 - transfer.phase_margin_deg)", low=shortest),

@@ -78,7 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     from runtime.controllers import CONTROLLERS
     from runtime.estimators import ESTIMATORS
     from runtime.telemetry import SINK_HELP
-    from runtime.transfer_schemes import TRANSFERS
+    from runtime.transfer.schemes import TRANSFERS
 
     p = argparse.ArgumentParser(prog="bruce-run", description=__doc__, epilog=EXIT_CODES_HELP)
     p.add_argument("--backend", choices=BACKENDS, default="mock",
@@ -96,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--transfer", choices=TRANSFERS, default=None,
                    help="direct: Eq. 8 torques alone; pinn or eq9: the paper's Eq. 9, tracking the PINN's prediction; "
                         "shadow: a PD towards the reference model's shadow of the simulator; observer: a slow "
-                        "integrator of the model's one-step residual (runtime/transfer_schemes.py; the model: "
+                        "integrator of the model's one-step residual (runtime/transfer/schemes.py; the model: "
                         "transfer.reference_model) (default: transfer.scheme in the config, shipped direct)")
     p.add_argument("--controller", choices=CONTROLLERS, default="policy",
                    help="policy: the ONNX walking policy (--policy); teacher: the model-based walking controller; "

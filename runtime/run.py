@@ -3,7 +3,7 @@
 Start-up follows the robot: configure (inactive, reads only) -> load and check the models, warm up their
 sessions -> read the measured pose -> start telemetry -> ask for real-time scheduling -> activate -> loop.
 A tick: read -> safety triggers -> policy (once per policy period on the backend's clock) -> Eq. 8 -> transfer scheme
-(runtime/transfer_schemes.py: direct, the paper's Eq. 9 on the PINN, ...; with a reference model, the gap monitor
+(runtime/transfer/schemes.py: direct, the paper's Eq. 9 on the PINN, ...; with a reference model, the gap monitor
 scores its last prediction) -> safety filter -> write -> telemetry -> observers (`runtime.observers`: evaluation
 and recording, outside every timed section; they may end the run, never change what is sent). A trip of the safety
 stage (or SIGINT/SIGTERM) puts the backend into its damping state at once and holds it for `safety.damping_hold_s`
@@ -40,7 +40,6 @@ from runtime.estimation import Estimator, GroundTruthEstimator, tilt_angle
 from runtime.estimators import make_estimator
 from runtime.exit import FAULT_CLASSES, NOTHING_ENABLED, ExitCode, StopFlag, StopRequested
 from runtime.falls import FALL_TILT_RAD
-from runtime.gap_monitor import GapMonitor
 from runtime.inference import ModelError, OnnxPinn
 from runtime.loopstats import LoopStats
 from runtime.mixing import eq8_torque
@@ -48,7 +47,8 @@ from runtime.observers import GroundTruthLog, TickObserver, TickView, ground_tru
 from runtime.pacing import Pacer
 from runtime.realtime import RealtimeGrant, request_realtime
 from runtime.safety import SafetyStage, SafetyState
-from runtime.transfer_schemes import TransferScheme, build_scheme
+from runtime.transfer.gap_monitor import GapMonitor
+from runtime.transfer.schemes import TransferScheme, build_scheme
 
 AT_REST_QD = 0.05            # rad/s: the damping hold ends early once every joint is this slow ...
 AT_REST_TICKS = 100          # ... for this many ticks in a row

@@ -1,4 +1,4 @@
-"""The live gap monitor (runtime/gap_monitor.py) and its place in the loop."""
+"""The live gap monitor (runtime/transfer/gap_monitor.py) and its place in the loop."""
 
 import json
 import logging
@@ -9,8 +9,8 @@ import pytest
 from bruce_hw.config import load_config
 from bruce_hw.mock import MujocoBackend
 from runtime.commands import CommandSchedule
-from runtime.gap_monitor import GapMonitor
 from runtime.run import run_session
+from runtime.transfer.gap_monitor import GapMonitor
 
 JOINTS = ("a", "b")
 
@@ -41,7 +41,7 @@ def test_window_rms_covers_the_last_window_and_the_stats_the_whole_run():
 def test_a_large_gap_logs_one_warning_per_crossing_and_never_faults(caplog):
     monitor = GapMonitor(JOINTS, window_ticks=2, warn_rms=1.0)
     zero = (np.zeros(2), np.zeros(2))
-    with caplog.at_level(logging.WARNING, logger="runtime.gap_monitor"):
+    with caplog.at_level(logging.WARNING, logger="runtime.transfer.gap_monitor"):
         for qd in (2.0, 2.0, 2.0, 2.0):  # above the threshold for several windows: one line
             monitor.update(zero, np.zeros(2), np.array([qd, 0.0]))
         assert monitor.warnings == 1

@@ -209,7 +209,7 @@ def test_the_twin_metric_is_zero_when_the_robot_is_the_simulator_and_not_with_a_
 
 
 def test_the_twin_metric_scores_only_after_the_start_up(config):
-    from runtime.twin_metric import TwinMetric
+    from runtime.transfer.twin_metric import TwinMetric
 
     early, late = TwinMetric(skip_s=TRACKING_SKIP_S), TwinMetric(skip_s=0.0)
     with contextlib.redirect_stdout(io.StringIO()):

@@ -18,15 +18,15 @@ from bruce_hw.backend import TruthSealed
 from bruce_hw.config import load_config
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.reality_gap import load_gap
-from runtime import transfer_schemes
 from runtime.commands import CommandSchedule
 from runtime.estimation import BaseEstimate
 from runtime.exit import ExitCode
 from runtime.kinematic_estimator import KinematicEstimator
 from runtime.observers import TickObserver
-from runtime.reference_models import foot_spheres, lowest_point, nominal_model, place_from_estimate
 from runtime.run import run_session
-from runtime.twin_runner import ThreadTwinRunner
+from runtime.transfer import schemes as transfer_schemes
+from runtime.transfer.reference_models import foot_spheres, lowest_point, nominal_model, place_from_estimate
+from runtime.transfer.twin_runner import ThreadTwinRunner
 
 WALK = CommandSchedule.constant(0.4, 0.0, 0.0)
 

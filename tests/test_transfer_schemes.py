@@ -1,5 +1,5 @@
-"""The transfer stage's schemes (runtime/transfer_schemes.py), their gains (runtime/transfer_gains.py), the
-perfect-model reference (runtime/reference_models.py) and the nominal twin (runtime/nominal_twin.py)."""
+"""The transfer stage's schemes (runtime/transfer/schemes.py), their gains (runtime/transfer/gains.py), the
+perfect-model reference and the nominal twin (runtime/transfer/: reference_models.py, nominal_twin.py)."""
 
 import math
 
@@ -12,11 +12,11 @@ from bruce_hw.types import JointCommand
 from runtime.inference import ModelError
 from runtime.kinematic_estimator import KinematicEstimator
 from runtime.mixing import eq8_torque
-from runtime.nominal_twin import TwinInput
-from runtime.reference_models import NominalReference
-from runtime.transfer_gains import joint_inertia, observer_gain, pd_crossover, pd_gains, shortest_observer_time_constant
-from runtime.transfer_schemes import Eq9Scheme, ObserverScheme, ShadowScheme, TransferScheme, TwinScheme, build_scheme
-from runtime.twin_runner import InlineTwinRunner, ThreadTwinRunner, TwinIntegral
+from runtime.transfer.gains import joint_inertia, observer_gain, pd_crossover, pd_gains, shortest_observer_time_constant
+from runtime.transfer.nominal_twin import TwinInput
+from runtime.transfer.reference_models import NominalReference
+from runtime.transfer.schemes import Eq9Scheme, ObserverScheme, ShadowScheme, TransferScheme, TwinScheme, build_scheme
+from runtime.transfer.twin_runner import InlineTwinRunner, ThreadTwinRunner, TwinIntegral
 
 DT = 1e-3
 
@@ -486,7 +486,7 @@ class VelocityTwin(ScriptedTwin):
 
 def test_the_command_correction_holds_the_robots_velocity_to_the_twins_and_only_the_robot_is_steered():
     from runtime.estimation import BaseEstimate
-    from runtime.twin_runner import COMMAND_CLIP
+    from runtime.transfer.twin_runner import COMMAND_CLIP
 
     twin = VelocityTwin([[0.0]] * 6, velocity=[0.4, -0.03, 0.4])
     robot = BaseEstimate(quat=np.array([1.0, 0, 0, 0]), linvel=np.array([0.37, -0.07, 0.0]),

@@ -74,7 +74,7 @@ TRAJECTORY_RADIUS_M = 0.003
 
 # With a gap monitor (a transfer scheme with a reference model) each row carries three more blocks, sent as one
 # entity per joint, gap/<joint>: the one-step residuals (measured minus predicted a tick earlier) and the
-# monitor's short-window RMS of the velocity residual (runtime.gap_monitor).
+# monitor's short-window RMS of the velocity residual (runtime.transfer.gap_monitor).
 GAP_SERIES = ("qd residual", "q residual", "qd window RMS")
 GAP_COLOURS = (BLUE, GREEN, RED)
 def _xyzw(wxyz: np.ndarray) -> np.ndarray:

@@ -6,9 +6,9 @@ simulator and the PINN: the paper's Fig. 6 comparison for that run (docs/replay.
    recorded in the same format (DIR/simulation). Per-joint RMSE of q and qd between the log and the simulation, tick
    by tick, and its split into a constant offset and the rest (bruce-eval transfer's metrics).
 2. One step along the log: from each logged (q, qd) under the torque written, what the PINN (its LSTM state carried
-   along the log, as on the robot) and the nominal MuJoCo model (`runtime.reference_models.NominalReference`, as the
-   live gap monitor runs it; it needs the base state, which only a simulator's log has) predict for the next tick,
-   against the next logged sample: per-joint RMSE.
+   along the log, as on the robot) and the nominal MuJoCo model (`runtime.transfer.reference_models.NominalReference`,
+   as the live gap monitor runs it; it needs the base state, which only a simulator's log has) predict for the next
+   tick, against the next logged sample: per-joint RMSE.
 3. The live gap monitor's residual, where the run had a reference model and logged it.
 
 Output: DIR/replay.json (every figure), DIR/replay.md (the tables), DIR/fig6_replay.png.
@@ -235,7 +235,7 @@ def pinn_one_step(log: RunLog, pinn_path: Path) -> np.ndarray:
 
 def nominal_one_step(log: RunLog, config: RobotConfig) -> np.ndarray:
     """As `pinn_one_step`, for the nominal MuJoCo model set to the logged base state (simulator logs only)."""
-    from runtime.reference_models import NominalReference
+    from runtime.transfer.reference_models import NominalReference
 
     q, qd, tau = log.column("q"), log.column("qd"), log.column("tau")
     base = [log.column(name) for name in ("base_pos", "base_quat", "base_linvel", "base_angvel")]

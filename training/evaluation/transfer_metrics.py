@@ -134,7 +134,7 @@ def run_metrics(record: RunRecord, nominal: RunRecord, experiment: Experiment) -
     offset, shape = offset_and_shape(record, nominal)
     out.update(offset=float(np.sqrt(np.mean(offset ** 2))), shape=float(np.sqrt(np.mean(shape ** 2))),
                offset_per_joint=offset.tolist(), shape_per_joint=shape.tolist())
-    if record.twin_rmse_per_joint is not None:  # the twin metric (runtime.twin_metric), mean over joints
+    if record.twin_rmse_per_joint is not None:  # the twin metric (runtime.transfer.twin_metric), mean over joints
         out.update(twin_rmse=float(np.mean(record.twin_rmse_per_joint)),
                    twin_rmse_per_joint=record.twin_rmse_per_joint.tolist())
     if experiment.command[2] != 0.0 and experiment.command[0] != 0.0:

@@ -19,7 +19,7 @@ from runtime.observers import TickObserver, heading_velocity
 
 MODES = ("direct", "pinn")
 LOOKAHEAD_MODE = "pinn_ahead"  # Eq. 9 with the reference rolled ahead over the gap's latency (not the paper's)
-# A mode is a transfer scheme (runtime.transfer_schemes.TRANSFERS) on the configured reference model, or
+# A mode is a transfer scheme (runtime.transfer.schemes.TRANSFERS) on the configured reference model, or
 # SCHEME@nominal: the same scheme on the nominal MuJoCo model, its perfect-model control.
 PERFECT_MODEL_SUFFIX = "@nominal"
 MODE_NAMES = {"direct": "direct (Eq. 8)", "pinn": "PINN (Eq. 9)", LOOKAHEAD_MODE: "PINN, look-ahead"}
@@ -86,7 +86,8 @@ class RunRecord:
     stop_cause: str
     fall_time: float | None = None
     extra: dict = field(default_factory=dict)
-    # the twin metric (runtime.twin_metric): per joint, RMS of (twin q - robot q) at the end of each 10 ms window
+    # the twin metric (runtime.transfer.twin_metric): per joint, RMS of (twin q - robot q) at the end of each 10 ms
+    # window
     twin_rmse_per_joint: np.ndarray | None = None
 
 
@@ -117,7 +118,7 @@ def run_one(spec: RunSpec) -> RunRecord:
     """One run of `spec` in a fresh mock; module-level so that a process pool can call it."""
     from bruce_hw.mock import MujocoBackend
     from runtime.run import run_session
-    from runtime.twin_metric import TwinMetric
+    from runtime.transfer.twin_metric import TwinMetric
 
     scheme, model = scheme_of(spec.mode)
     overrides = list(spec.overrides) + ([f"transfer.reference_model={model}"] if model else [])

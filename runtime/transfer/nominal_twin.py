@@ -34,8 +34,8 @@ from bruce_hw.types import GroundTruth
 from runtime.estimation import BaseEstimate, GroundTruthEstimator
 from runtime.kinematic_estimator import EstimatorSnapshot, KinematicEstimator
 from runtime.mixing import eq8_torque
-from runtime.reference_models import foot_spheres, nominal_model, place_from_estimate, set_state
 from runtime.safety import SafetyStage
+from runtime.transfer.reference_models import foot_spheres, nominal_model, place_from_estimate, set_state
 
 
 @dataclass(slots=True)

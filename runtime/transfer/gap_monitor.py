@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-log = logging.getLogger("runtime.gap_monitor")
+log = logging.getLogger("runtime.transfer.gap_monitor")
 
 
 @dataclass

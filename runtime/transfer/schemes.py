@@ -2,12 +2,12 @@
 (docs/transfer.md, "The schemes").
 
 A scheme (`build_scheme`) gets the policy's targets a_t, the measured joint state and tau*, asks its reference model
-(a `runtime.reference_models.ReferenceModel`: the PINN, or the nominal MuJoCo model as the perfect-model control)
+(a `reference_models.ReferenceModel`: the PINN, or the nominal MuJoCo model as the perfect-model control)
 what the simulator would do (`predict`: the model work, timed as the loop's `pinn` section) and returns the torque
 to send (`torque`: the mixing). Schemes: `direct` (`TransferScheme`), `eq9` / `pinn` (`Eq9Scheme`), `shadow`
 (`ShadowScheme`), `observer` (`ObserverScheme`), `twin` and `shadow_twin` (`TwinScheme`). `one_step` is the model's
 prediction of the next tick's (q, qd) from this tick's measured state (None when the scheme made none this tick):
-the gap monitor's input (`runtime.gap_monitor`).
+the gap monitor's input (`runtime.transfer.gap_monitor`).
 """
 
 from __future__ import annotations
@@ -21,10 +21,10 @@ from bruce_hw.config import PdGains, RobotConfig
 from runtime.controllers import build_controller
 from runtime.inference import ModelError
 from runtime.mixing import eq8_torque, eq9_torque
-from runtime.nominal_twin import NominalTwin, TwinInput
-from runtime.reference_models import ReferenceModel, build_reference
-from runtime.transfer_gains import joint_inertia, observer_gain, pd_gains
-from runtime.twin_runner import MAX_BACKLOG_TICKS, InlineTwinRunner, ThreadTwinRunner, TwinIntegral
+from runtime.transfer.gains import joint_inertia, observer_gain, pd_gains
+from runtime.transfer.nominal_twin import NominalTwin, TwinInput
+from runtime.transfer.reference_models import ReferenceModel, build_reference
+from runtime.transfer.twin_runner import MAX_BACKLOG_TICKS, InlineTwinRunner, ThreadTwinRunner, TwinIntegral
 
 EQ9_ALIASES = ("pinn", "eq9")  # `--transfer pinn` has always meant the paper's Eq. 9
 TWIN_SCHEMES = {"twin": "direct", "shadow_twin": "shadow"}  # each one's inner scheme
@@ -89,7 +89,7 @@ class Eq9Scheme(TransferScheme):
 
 class ShadowScheme(TransferScheme):
     """A PD towards the simulator's shadow at the same tick (gains from the delay margin,
-    `runtime.transfer_gains.pd_gains`). The model rolls the shadow on from its own previous state under the
+    `runtime.transfer.gains.pd_gains`). The model rolls the shadow on from its own previous state under the
     simulator's own Eq. 8 torque on the same a_t, resynchronised to the measured state every
     `transfer.shadow.resync_ticks`."""
 
@@ -160,7 +160,7 @@ class ObserverScheme(TransferScheme):
 
 class TwinScheme(TransferScheme):
     """An inner scheme (direct or the shadow) plus a slow clipped integral of the robot's posture offset from its
-    live nominal twin (`runtime.nominal_twin`, `runtime.twin_runner.TwinIntegral`): u <- clip(u + Kp dt / T
+    live nominal twin (`nominal_twin`, `twin_runner.TwinIntegral`): u <- clip(u + Kp dt / T
     (q_twin - q), +- clip), Kp the Eq. 8 stiffness, T = `transfer.twin.time_constant_s`. It sees the offsets that
     build over seconds (a static load, a turning gait's lean), which no prediction over a few ticks does; where the
     robot is the simulator, u stays 0. The twin is resynchronised to the robot every `resync_ticks` (and at the next
@@ -267,7 +267,7 @@ def build_scheme(config: RobotConfig, name: str, pinn_path: Path | None = None, 
     `KinematicEstimator`: a robot-faithful run, any backend) or, when `base_state` is given instead, the simulator's
     truth (a truth-fed diagnostic run on the mock). `twin_controller()` makes the twin schemes' second instance of
     the robot's nominal controller (default: the configured walking policy); `paced`: the twin runs on a thread of
-    its own (`runtime.twin_runner`)."""
+    its own (`runtime.transfer.twin_runner`)."""
     if name not in TRANSFERS:
         raise ValueError(f"unknown transfer {name!r} (expected one of {', '.join(TRANSFERS)})")
     if name == "direct":

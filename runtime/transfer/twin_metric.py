@@ -24,8 +24,8 @@ from bruce_hw.backend import Backend
 from bruce_hw.config import RobotConfig
 from runtime.mixing import eq8_torque
 from runtime.observers import TRACKING_SKIP_S, TickObserver, TickView
-from runtime.reference_models import nominal_backend, set_state
 from runtime.safety import SafetyStage, SafetyState
+from runtime.transfer.reference_models import nominal_backend, set_state
 
 
 class TwinMetric(TickObserver):
