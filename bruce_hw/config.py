@@ -142,7 +142,7 @@ class ModelsConfig:
 
 @dataclass(frozen=True, slots=True)
 class EstimatorConfig:
-    """The kinematic base estimator's settings (`estimator` section, optional; runtime/kinematic_estimator.py)."""
+    """The kinematic base estimator's settings (`estimator` section, optional; runtime/estimation/kinematic.py)."""
 
     # > 0: for this long after the estimator starts, while both feet are flat, the accelerometer's horizontal bias
     # is learned so that gravity points along the feet plane's normal ("level is where the feet are"); 0: off.

@@ -76,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
     from bruce_hw.config import DEFAULT_CONFIG
     from runtime.commands import COMMAND_LIMITS, COMMAND_UNITS
     from runtime.controllers import CONTROLLERS
-    from runtime.estimators import ESTIMATORS
+    from runtime.estimation.estimators import ESTIMATORS
     from runtime.telemetry import SINK_HELP
     from runtime.transfer.schemes import TRANSFERS
 

@@ -37,7 +37,7 @@ from bruce_hw.io_priority import above_the_caller
 from bruce_hw.types import JointCommand, RobotState
 from runtime.controllers import build_controller
 from runtime.estimation import Estimator, GroundTruthEstimator, tilt_angle
-from runtime.estimators import make_estimator
+from runtime.estimation.estimators import make_estimator
 from runtime.exit import FAULT_CLASSES, NOTHING_ENABLED, ExitCode, StopFlag, StopRequested
 from runtime.falls import FALL_TILT_RAD
 from runtime.inference import ModelError, OnnxPinn
@@ -283,7 +283,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
                 stop: StopFlag | None = None, privileged: bool = False) -> RunSummary:
     """Run one session. `rerun` is a `runtime.telemetry.RerunSink` (None: no telemetry); `controller_kind` picks
     the nominal controller (`build_controller`), and `controller` replaces it (anything with reset(q) and
-    __call__(state, base, command) -> a); `estimator` is an estimator kind (`runtime.estimators.ESTIMATORS`) or
+    __call__(state, base, command) -> a); `estimator` is an estimator kind (`estimation.estimators.ESTIMATORS`) or
     an `Estimator` (default: the truth where the backend has one, else the kinematic estimator); `commands` has
     `at(t) -> (vx, vy, yaw rate)` for t in seconds since activation, e.g. a `runtime.commands.CommandSchedule`
     (default: stand still). `observers` (`runtime.observers.TickObserver`, e.g. `training.collect`'s recorder) see

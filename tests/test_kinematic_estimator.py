@@ -13,7 +13,7 @@ from bruce_hw.quaternion import euler_of, rotate_to_body
 from bruce_hw.types import FootContacts, ImuSample, JointCommand, JointState, RobotState
 from runtime.commands import CommandSchedule
 from runtime.estimation import GroundTruthEstimator
-from runtime.kinematic_estimator import IMU_DELAY_S, KinematicEstimator
+from runtime.estimation.kinematic import IMU_DELAY_S, KinematicEstimator
 from runtime.mixing import eq8_torque
 from runtime.run import run_session
 from runtime.standing import StandingController

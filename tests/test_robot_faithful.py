@@ -20,8 +20,8 @@ from bruce_hw.mock import MujocoBackend
 from bruce_hw.reality_gap import load_gap
 from runtime.commands import CommandSchedule
 from runtime.estimation import BaseEstimate
+from runtime.estimation.kinematic import KinematicEstimator
 from runtime.exit import ExitCode
-from runtime.kinematic_estimator import KinematicEstimator
 from runtime.observers import TickObserver
 from runtime.run import run_session
 from runtime.transfer import schemes as transfer_schemes

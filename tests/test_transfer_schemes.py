@@ -9,8 +9,8 @@ import pytest
 from bruce_hw.config import ConfigError, PdGains, load_config, parse_config
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.types import JointCommand
+from runtime.estimation.kinematic import KinematicEstimator
 from runtime.inference import ModelError
-from runtime.kinematic_estimator import KinematicEstimator
 from runtime.mixing import eq8_torque
 from runtime.transfer.gains import joint_inertia, observer_gain, pd_crossover, pd_gains, shortest_observer_time_constant
 from runtime.transfer.nominal_twin import TwinInput

@@ -8,7 +8,7 @@ from bruce_hw.config import load_config
 from bruce_hw.mock import MujocoBackend
 from runtime.commands import CommandSchedule
 from runtime.estimation import GroundTruthEstimator
-from runtime.kinematic_estimator import KinematicEstimator
+from runtime.estimation.kinematic import KinematicEstimator
 from runtime.run import run_session
 from training.evaluation.walking_eval import GRID, TRACKING_LIMIT
 

@@ -64,7 +64,7 @@ class DistillSettings:
     learning_rate: float = 1e-3
     fall_trim_s: float = 0.5               # s of samples dropped before a fall (runtime.falls) or a safety trip
     # Where the student's base state comes from: "truth" (the simulator's) or "kinematic" (the robot-side
-    # estimator on the same sensors, runtime.kinematic_estimator). The teacher always labels from the truth.
+    # estimator on the same sensors, runtime.estimation.kinematic). The teacher always labels from the truth.
     observe: str = "truth"
 
     def to_json(self) -> dict:

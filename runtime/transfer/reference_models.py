@@ -26,8 +26,8 @@ from bruce_hw.config import REFERENCE_MODELS, RobotConfig
 from bruce_hw.quaternion import euler_of, roll_pitch_quaternion, rotation_entries
 from bruce_hw.types import GroundTruth
 from runtime.estimation import BaseEstimate
+from runtime.estimation.kinematic import FEET
 from runtime.inference import ModelError, OnnxPinn
-from runtime.kinematic_estimator import FEET
 
 
 class ReferenceModel(Protocol):

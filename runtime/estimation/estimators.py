@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from bruce_hw.backend import Backend
 from runtime.estimation import Estimator, GroundTruthEstimator
-from runtime.kinematic_estimator import KinematicEstimator
+from runtime.estimation.kinematic import KinematicEstimator
 
 ESTIMATORS = ("truth", "kinematic")
 
