@@ -617,6 +617,7 @@ def test_default_sync_read_timeout_is_short():
     assert 4.0 < port.packet_timeout < 8.0   # ms
 
 
+@pytest.mark.slow  # waits out the SDK's packet timeouts (2 s)
 def test_silent_servos_are_named_after_the_packet_timeout(emu, patient_driver):
     with DynamixelArms.open(emu.path, BAUD, ARM_IDS, signs=ARM_SIGNS, latency_ms=DRIVER_SILENCE_LATENCY_MS) as driver:
         driver.read()
@@ -647,6 +648,7 @@ def test_silent_servos_are_named_within_bounded_time(wall_emu):
         driver.read()
 
 
+@pytest.mark.slow  # waits out the SDK's packet timeouts (2 s)
 def test_open_names_missing_servos(emu):
     emu.silence([14])
     with pytest.raises(BusTimeout) as caught:
@@ -666,6 +668,7 @@ def test_hardware_error_raises_device_fault_with_named_flags(emu, arms):
     assert not emu.torque_enabled_all().any()       # the others were still turned off
 
 
+@pytest.mark.slow  # waits out the SDK's packet timeouts (2 s)
 @pytest.mark.parametrize("mode, reason", [("crc", "crc"), ("truncate", "truncated"), ("foreign", "foreign")])
 def test_corrupted_replies_are_rejected_and_counted(emu, patient_driver, mode, reason):
     # 12's reply never comes intact: the driver waits its whole timeout, a shorter one.
@@ -887,6 +890,7 @@ def test_driver_writes_reads_back_and_clears_the_watchdog(emu, clock, patient_dr
     assert not [e for e in texts if "stopped" in e]
 
 
+@pytest.mark.slow  # waits out the SDK's packet timeouts (2 s)
 def test_driver_close_keeps_the_watchdog_of_a_servo_it_could_not_turn_off(emu, clock, patient_driver):
     arms = DynamixelArms.open(emu.path, BAUD, ARM_IDS, signs=ARM_SIGNS, latency_ms=DRIVER_SILENCE_LATENCY_MS,
                               hold_pose=HOLD, watchdog_s=0.04, retries=0)
