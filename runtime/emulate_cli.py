@@ -234,7 +234,10 @@ def main(argv: list[str] | None = None) -> int:
         print("run the robot stack against it with:")
         print(f"  bruce-run {shlex.join(run_args)}")
         print("Ctrl-C stops the emulators; fault commands on stdin (silence, answer, unplug, plug, loss, delay, estop, "
-              "imu, place, status).", flush=True)
+              "imu, place, stand, status).")
+        print(f"Both run on this machine: where it stops them for longer than safety.host_stall_max_s "
+              f"({1e3 * config.safety.host_stall_max_s:g} ms; a VM does at times), the run ends on a line naming the "
+              "host stall (docs/safety.md).", flush=True)
         printer.start()
         _serve(robot, args.duration)
         return 0
