@@ -194,7 +194,12 @@ def _answered(request, *args):
 
 def check_dynamixel(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
     from drivers.dynamixel_codec import decode_hardware_error, decode_status_error
-    from drivers.dynamixel_registers import ADDR_HARDWARE_ERROR, ADDR_PRESENT_INPUT_VOLTAGE, ADDR_PRESENT_TEMPERATURE
+    from drivers.dynamixel_registers import (
+        ADDR_FIRMWARE_VERSION,
+        ADDR_HARDWARE_ERROR,
+        ADDR_PRESENT_INPUT_VOLTAGE,
+        ADDR_PRESENT_TEMPERATURE,
+    )
 
     bus_cfg = config.buses.dynamixel
     report = BusReport(f"Dynamixel bus {bus_cfg.port} ({bus_cfg.baud} baud, IDs {ids_text(bus_cfg.ids)})")
@@ -222,13 +227,15 @@ def check_dynamixel(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
             hardware, r1, _ = _answered(handler.read1ByteTxRx, port, dxl_id, ADDR_HARDWARE_ERROR)
             temperature, r2, _ = _answered(handler.read1ByteTxRx, port, dxl_id, ADDR_PRESENT_TEMPERATURE)
             voltage, r3, _ = _answered(handler.read2ByteTxRx, port, dxl_id, ADDR_PRESENT_INPUT_VOLTAGE)
-            if (r1, r2, r3) != (COMM_SUCCESS,) * 3:
+            firmware, r4, _ = _answered(handler.read1ByteTxRx, port, dxl_id, ADDR_FIRMWARE_VERSION)
+            if (r1, r2, r3, r4) != (COMM_SUCCESS,) * 4:
                 report.missing.append(dxl_id)
                 report.lines.append(f"ID {dxl_id}: answers ping (model {model}) but not reads")
                 continue
             flags = decode_status_error(error) + decode_hardware_error(hardware)
-            report.lines.append(f"ID {dxl_id}: model {model}; error flags {', '.join(flags) or 'none'}; "
-                                f"temperature {temperature} C; input {voltage / 10:.1f} V")
+            report.lines.append(f"ID {dxl_id}: model {model}, firmware {firmware}; error flags "
+                                f"{', '.join(flags) or 'none'}; temperature {temperature} C; "
+                                f"input {voltage / 10:.1f} V")
             if flags:
                 report.faults.append(f"ID {dxl_id}: {', '.join(flags)}")
         answering = [i for i in bus_cfg.ids if i not in report.missing]

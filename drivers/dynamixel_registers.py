@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 # -- X-series control table addresses used by the driver ----------------------------------------------------------
+ADDR_FIRMWARE_VERSION = 6         # 1 byte, read-only
 ADDR_DRIVE_MODE = 10
 ADDR_OPERATING_MODE = 11
 ADDR_TORQUE_ENABLE = 64

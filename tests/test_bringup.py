@@ -60,7 +60,11 @@ def test_01_every_device_answers_and_reports_its_identity(bringup_config):
     for report in reports:
         print(report.text())
     assert all(report.ok for report in reports), "; ".join(r.problem() for r in reports if not r.ok)
-    say("Every device answered: the lines above are their IDs, models, flags, temperatures and voltages.")
+    arms = next(r for r in reports if r.name.startswith("Dynamixel"))
+    assert len(arms.lines) == len(bringup_config.buses.dynamixel.ids)
+    assert all(", firmware " in line for line in arms.lines), arms.lines  # each servo's identity: model, firmware
+    say("Every device answered: the lines above are their IDs, models (and the servos' firmware), flags, temperatures "
+        "and voltages.")
 
 
 def test_02_configuration_and_limits_write_and_read_back(bringup_config):
