@@ -49,6 +49,7 @@ class HostWitness:
         self.total_s = 0.0       # their total length
         self.worst_s = 0.0       # the longest
         self.last_wake = clock()  # the witness's last wake-up: a stall in progress is the time since
+        self.running = False      # its thread is watching (a witness that is not cannot say it was silent)
 
     @property
     def thread(self) -> threading.Thread | None:
@@ -58,10 +59,13 @@ class HostWitness:
         if self._thread is None:
             self._stop.clear()
             self._thread = threading.Thread(target=self._run, name="host-witness", daemon=True)
+            self.last_wake = self.clock()
+            self.running = True
             self._thread.start()
 
     def stop(self) -> None:
         if self._thread is not None:
+            self.running = False
             self._stop.set()
             self._thread.join(timeout=0.1)
             self._thread = None
@@ -76,26 +80,53 @@ class HostWitness:
             self.last_wake = now
             due = now + period
 
-    def record(self, start: float, end: float) -> None:
-        """A stall from `start` to `end` (the thread's own finding, or a test's)."""
-        stall = Stall(start, end)
+    def reset_counts(self) -> None:
+        """Count from now on (the backend's activation: stalls during start-up, loading models, are not the run's);
+        the log `stalled_between` reads is kept."""
         with self._lock:
-            self._stalls.append(stall)
-            self.count += 1
-            self.total_s += stall.length
+            self.count, self.total_s, self.worst_s = 0, 0.0, 0.0
+
+    def record(self, start: float, end: float) -> None:
+        """A stall from `start` to `end`: the thread's own finding, the backend's (`silent_since`), or a test's. What
+        overlaps a stall already recorded is not counted twice."""
+        with self._lock:
+            last = self._stalls[-1] if self._stalls else None
+            if last is not None and start <= last.end:  # the same stall, seen again: extend it
+                if end <= last.end:
+                    return
+                stall = self._stalls[-1] = Stall(last.start, end)
+                self.total_s += end - last.end
+            else:
+                stall = Stall(start, end)
+                self._stalls.append(stall)
+                self.count += 1
+                self.total_s += stall.length
             self.worst_s = max(self.worst_s, stall.length)
         self.last_wake = max(self.last_wake, end)
 
+    def silent_since(self, now: float) -> float | None:
+        """When the witness last woke, if that is longer ago than its tolerance (it has not been run since: the
+        process, or its Python threads, were not run), else None."""
+        last = self.last_wake
+        return last if self.running and now - last > self.tolerance_s else None
+
     def stalled_between(self, t0: float, t1: float) -> float:
-        """Seconds of [t0, t1] in which the process was not run (stalls recorded so far)."""
+        """Seconds of [t0, t1] in which the process was not run: the stalls recorded so far, and one still unrecorded
+        that reaches `t1` (the witness silent for longer than its tolerance at `t1`: a thread that asks right after
+        the process resumed runs before the witness has woken to record the stall)."""
         if t1 <= t0:
             return 0.0
         total = 0.0
         with self._lock:
+            recorded_to = self._stalls[-1].end if self._stalls else -float("inf")
             for stall in reversed(self._stalls):
                 if stall.end <= t0:
                     break  # recorded in time order: the older ones end earlier still
                 total += max(0.0, min(stall.end, t1) - max(stall.start, t0))
+        silent = self.silent_since(t1)
+        if silent is not None:
+            start = max(silent + self.period_s, recorded_to, t0)
+            total += max(0.0, t1 - start)
         return total
 
     def stalls_since(self, t0: float) -> list[Stall]:

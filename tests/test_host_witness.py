@@ -144,3 +144,39 @@ def test_a_stall_beyond_the_bound_trips_the_safety_stage_naming_its_length(confi
     stage.check(robot(config, stamp=now, imu_stamp=now), now=now)  # fresh data after it: the stall itself trips
     assert stage.tripped and "host stall: this process was not run for" in stage.cause
     assert f"since the previous tick > safety.host_stall_max_s {1e3 * bound:g} ms" in stage.cause
+
+
+def test_the_counts_restart_at_activation_and_the_log_stays():
+    witness = HostWitness()
+    witness.record(1.0, 1.030)  # during start-up
+    witness.reset_counts()
+    witness.record(2.0, 2.005)
+    assert witness.report() == {"count": 1, "worst_ms": pytest.approx(5.0), "total_ms": pytest.approx(5.0)}
+    assert witness.stalled_between(0.0, 3.0) == pytest.approx(0.035)
+
+
+def test_a_stall_recorded_twice_is_counted_once():
+    """The backend records a stall the witness has not yet woken to record; the witness's own record of it, later,
+    extends that one stall by what lies beyond."""
+    witness = HostWitness()
+    witness.record(1.001, 1.031)  # the backend, from the witness's silence
+    witness.record(1.001, 1.032)  # the witness, on waking
+    assert witness.stalled_between(0.0, 2.0) == pytest.approx(0.031)
+    assert witness.report() == {"count": 1, "worst_ms": pytest.approx(31.0), "total_ms": pytest.approx(31.0)}
+    witness.record(1.010, 1.020)  # wholly inside: nothing
+    assert witness.report()["count"] == 1
+    assert witness.silent_since(witness.last_wake + 0.010) is None  # not watching: it cannot say
+    witness.running = True
+    assert witness.silent_since(witness.last_wake + 0.001) is None
+    assert witness.silent_since(witness.last_wake + 0.010) == witness.last_wake
+
+
+def test_a_stall_not_yet_recorded_counts_up_to_the_moment_asked():
+    """Right after the process resumes, the loop may ask before the witness has woken: the witness's silence is the
+    stall (here 30 ms since its last wake at t = 10)."""
+    witness = HostWitness()
+    witness.running, witness.last_wake = True, 10.0  # its thread, as if it had last woken at t = 10
+    assert witness.stalled_between(9.990, 10.031) == pytest.approx(0.030)  # from its due wake-up, 10.001
+    assert witness.stalled_between(9.990, 10.0015) == 0.0  # within its tolerance: not a stall
+    witness.record(10.001, 10.031)  # then it wakes and records the same stall: counted once
+    assert witness.stalled_between(9.990, 10.031) == pytest.approx(0.030)
