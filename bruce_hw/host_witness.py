@@ -87,8 +87,8 @@ class HostWitness:
             self.count, self.total_s, self.worst_s = 0, 0.0, 0.0
 
     def record(self, start: float, end: float) -> None:
-        """A stall from `start` to `end`: the thread's own finding, the backend's (`silent_since`), or a test's. What
-        overlaps a stall already recorded is not counted twice."""
+        """A stall from `start` to `end`: the thread's own finding, or a test's. What overlaps a stall already recorded
+        extends it rather than counting twice."""
         with self._lock:
             last = self._stalls[-1] if self._stalls else None
             if last is not None and start <= last.end:  # the same stall, seen again: extend it

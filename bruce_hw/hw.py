@@ -403,9 +403,6 @@ class HwBackend(Backend):
             if fresh_legs and fresh_imu and witness.last_wake >= now:
                 break
             time.sleep(0.0001)
-        silent = witness.silent_since(now)
-        if silent is not None:  # the witness has still not run (after a freeze, other threads hold the GIL first):
-            witness.record(silent + witness.period_s, now)  # its silence is the stall; it would record the same
         self._last_read_at = time.monotonic()
         stalled = witness.stalled_between(last, self._last_read_at)
         if stalled > self.host_stall_max_s:  # damping at once; the safety stage trips on the same stall
