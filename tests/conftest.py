@@ -196,7 +196,7 @@ SLOW_MODULES = {
     "test_evaluate", "test_telemetry", "test_bear_reply_loss", "test_reality_gap", "test_run_outcomes", "test_cli",
     "test_loop", "test_standing", "test_olnn", "test_rl_train",
     "test_replay", "test_web_viewer", "test_robot_faithful", "test_host_stalls",
-    "test_bringup_emulated",
+    "test_bringup_emulated", "test_cluster",
 }
 
 

@@ -13,10 +13,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import datetime
 import io
 import logging
 import math
+import os
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -38,6 +40,7 @@ from runtime.observers import FallStop, TickObserver, TickView
 from runtime.recorder import file_sha256, portable_path
 from runtime.run import run_session
 from training.dataset import Dataset, DatasetError, config_hash, save_dataset
+from training.executor import Executor, ExecutorError, add_executor_arguments, make_executor
 
 SAMPLE_BOX = {"vx": (-0.5, 1.0), "vy": (-0.5, 0.5), "wz": (-0.5, 0.5)}   # the paper's §IV-B command box
 # What the committed policy supports: the ranges it was distilled on (training.distill.DistillSettings; the test
@@ -229,6 +232,59 @@ def collect(config: RobotConfig, settings: CollectSettings, *, policy: Path | No
                    np.concatenate([p[2] for p in parts]), ids, dt, meta, "bruce-collect")
 
 
+def collect_seed(config_path: str, settings: CollectSettings, policy: str | None) -> Dataset:
+    """One seed's collection, as an executor's worker runs it (`--seeds`): no progress bar, its own log level."""
+    return collect(load_config(config_path), settings, policy=Path(policy) if policy else None)
+
+
+def merge(parts: list[Dataset], command_line: str | None = None) -> Dataset:
+    """The seeds' datasets as one, in the order given: episodes numbered on, each episode and command segment
+    naming its seed, `seeds` listing them; the same parts give the same file wherever they were collected."""
+    first = parts[0].metadata
+    offsets = np.cumsum([0] + [len(part) for part in parts[:-1]])
+    episode_offsets = np.cumsum([0] + [len(part.metadata["episodes"]) for part in parts[:-1]])
+    episodes, segments = [], []
+    for part, offset, episode_offset in zip(parts, offsets, episode_offsets, strict=True):
+        seed = part.metadata["seed"]
+        episodes += [{**e, "seed": seed, "episode": e["episode"] + int(episode_offset),
+                      "first_index": e["first_index"] + int(offset)} for e in part.metadata["episodes"]]
+        segments += [{**g, "seed": seed, "episode": g["episode"] + int(episode_offset),
+                      "first_index": g["first_index"] + int(offset)} for g in part.metadata["segments"]]
+    meta = {**first, "seed": None, "seeds": [part.metadata["seed"] for part in parts],
+            "seconds": float(sum(part.metadata["seconds"] for part in parts)), "samples": int(sum(map(len, parts))),
+            "episodes": episodes, "segments": segments, "command": command_line or first.get("command")}
+    return Dataset(np.concatenate([p.q for p in parts]), np.concatenate([p.qd for p in parts]),
+                   np.concatenate([p.tau for p in parts]),
+                   np.concatenate([p.episode + o for p, o in zip(parts, episode_offsets, strict=True)]),
+                   parts[0].dt, meta, "bruce-collect")
+
+
+def collect_seeds(config: RobotConfig, settings: CollectSettings, seeds: list[int], executor: Executor,
+                  policy: Path | None = None, command_line: str | None = None, progress: bool = False) -> Dataset:
+    """`settings.seconds` of samples per seed, each seed a run on `executor` (made with `shipped_files`), merged
+    in the order of `seeds`."""
+    calls = [(executor.where(config.path), dataclasses.replace(settings, seed=seed),
+              executor.where(policy) if policy else None) for seed in seeds]
+    parts: list[Dataset | None] = [None] * len(calls)
+    per_seed = round(settings.seconds * config.loop_hz)
+    bar = Progress(per_seed * len(calls), config.dt, progress)  # one bar over every seed, wherever it runs
+    try:
+        for done, (index, part) in enumerate(executor.map(collect_seed, calls), start=1):
+            parts[index] = part
+            bar.show(done * per_seed)
+    finally:
+        bar.close()
+    merged = merge(parts, command_line)
+    merged.metadata["config"] = portable_path(config.path)  # named as here, not as a worker read it
+    merged.metadata["policy"] = str(policy or config.models.policy)
+    return merged
+
+
+def shipped_files(config: RobotConfig, policy: Path | None) -> list[Path]:
+    """What a seed's collection reads: the robot config's folder and the policy."""
+    return [config.path.parent, *([policy] if policy else [])]
+
+
 def _episode_commands(rng: np.random.Generator, seconds: float, warmup_s: float, settings: CollectSettings
                       ) -> tuple[CommandSchedule, list[tuple[float, list[float], list[float]]]]:
     """A standstill for the warm-up, then sampled segments to cover `seconds`; and (start s, sampled, clipped)
@@ -251,6 +307,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seconds", type=positive_seconds, default=defaults.seconds, metavar="S",
                    help="simulated seconds of samples to keep (default: %(default)g, as the paper)")
     p.add_argument("--seed", type=int, default=defaults.seed, help="command sampling seed (default: %(default)s)")
+    p.add_argument("--seeds", default=None, metavar="S,S,...",
+                   help="several seeds, --seconds each, collected in parallel (--executor) into one dataset; "
+                        "instead of --seed")
+    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+                   help="with --seeds and --executor local: parallel seeds (default: CPU count)")
+    add_executor_arguments(p)
     p.add_argument("--out", type=Path, required=True, metavar="PATH", help="the .npz file to write")
     p.add_argument("--config", default=DEFAULT_CONFIG, help="robot config YAML (default: %(default)s)")
     p.add_argument("--segment-s", type=positive_seconds, default=defaults.segment_s, metavar="S",
@@ -261,15 +323,34 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _seeds(text: str) -> list[int]:
+    try:
+        seeds = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise ConfigError(f"--seeds: expected comma-separated integers, got {text!r}") from None
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise ConfigError(f"--seeds: expected distinct integers, got {text!r}")
+    return seeds
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     command_line = "bruce-collect " + " ".join(sys.argv[1:] if argv is None else argv)
     try:
         config = load_config(args.config)
-        dataset = collect(config, CollectSettings(seconds=args.seconds, seed=args.seed, segment_s=args.segment_s),
-                          policy=args.policy, progress=not args.no_progress, command_line=command_line)
+        settings = CollectSettings(seconds=args.seconds, seed=args.seed, segment_s=args.segment_s)
+        if args.policy is not None and not args.policy.is_file():
+            raise ConfigError(f"{args.policy}: --policy file not found")
+        if args.seeds is None:
+            dataset = collect(config, settings, policy=args.policy, progress=not args.no_progress,
+                              command_line=command_line)
+        else:
+            seeds = _seeds(args.seeds)
+            with make_executor(args, args.jobs, ship=shipped_files(config, args.policy)) as executor:
+                dataset = collect_seeds(config, settings, seeds, executor, policy=args.policy,
+                                        command_line=command_line, progress=not args.no_progress)
         path = save_dataset(args.out, dataset)
-    except (ConfigError, BackendError, ModelError, DatasetError, CollectError) as exc:
+    except (ConfigError, BackendError, ModelError, DatasetError, CollectError, ExecutorError) as exc:
         print(f"bruce-collect: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
@@ -278,7 +359,8 @@ def main(argv: list[str] | None = None) -> int:
     meta = dataset.metadata
     falls = sum(e["end"] != "duration" for e in meta["episodes"])
     print(f"bruce-collect: wrote {path}: {len(dataset)} samples ({len(dataset) * dataset.dt:g} s at "
-          f"{1 / dataset.dt:g} Hz), {len(meta['episodes'])} episode(s), {falls} ended by a fall, seed {args.seed}")
+          f"{1 / dataset.dt:g} Hz), {len(meta['episodes'])} episode(s), {falls} ended by a fall, "
+          f"{'seed ' + str(args.seed) if args.seeds is None else 'seeds ' + args.seeds}")
     return 0
 
 

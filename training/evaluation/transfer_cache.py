@@ -38,7 +38,9 @@ def _noisy(gap) -> bool:
 def config_fingerprint(config: str | Path) -> str:
     """A hash of every file in the robot config's folder and below (the YAML, the ONNX models and their sidecars,
     the policy specs), by content; cached per (path, size, mtime) of each file."""
-    folder = Path(config).resolve().parent
+    from bruce_hw.config import resolve_config_path
+
+    folder = resolve_config_path(config).parent  # the default config from any working directory
     files = tuple(sorted((f.relative_to(folder).as_posix(), f.stat().st_size, f.stat().st_mtime_ns)
                          for f in folder.rglob("*") if f.is_file() and "__pycache__" not in f.parts))
     return _fingerprint(str(folder), files)

@@ -17,11 +17,17 @@ import dataclasses
 import json
 import os
 import sys
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bruce_hw.config import DEFAULT_CONFIG, REFERENCE_MODELS, TRANSFER_SCHEMES, ConfigError, load_config
+from bruce_hw.config import (
+    DEFAULT_CONFIG,
+    REFERENCE_MODELS,
+    TRANSFER_SCHEMES,
+    ConfigError,
+    load_config,
+    resolve_config_path,
+)
 from bruce_hw.reality_gap import GapError, RealityGap, latency_ticks, load_gap
 from runtime.observers import TRACKING_SKIP_S
 from runtime.policy_spec import policy_spec_for
@@ -45,6 +51,7 @@ from training.evaluation.transfer_runs import (
     run_one,
     scheme_of,
 )
+from training.executor import Executor, ExecutorError, LocalExecutor, add_executor_arguments, make_executor
 
 DEFAULT_SECONDS = 20.0
 DEFAULT_LATENCIES_MS = (0.0, 2.0, 4.0, 6.0, 8.0, 10.0)
@@ -174,21 +181,12 @@ class RunResults:
         return self.records.get(spec_key(spec))
 
 
-_REFERENCES: dict[tuple[str, str], RunRecord] = {}  # nominal records a worker process has loaded
-
-
-def _run_scored(spec: RunSpec, cache_root: str, kept: bool) -> tuple[dict, RunRecord | None]:
-    """Run `spec` and score it against its nominal reference (read from the cache; itself when it is nominal).
+def _run_scored(spec: RunSpec, reference: RunRecord | None, kept: bool) -> tuple[dict, RunRecord | None]:
+    """Run `spec` and score it against `reference`, its nominal run's record (None when `spec` is nominal: itself).
     Returns the metrics and, when `kept`, the record (a nominal one whole, any other as a figure trace)."""
     record = run_one(spec)
     if spec.mode == "nominal":
         reference = record
-    else:
-        nominal = nominal_of(spec)
-        key = (cache_root, spec_key(nominal))
-        if key not in _REFERENCES:
-            _REFERENCES[key] = RunCache(Path(cache_root)).record(key[1], nominal, RunRecord)
-        reference = _REFERENCES[key]
     metrics = run_metrics(record, reference, EXPERIMENT_BY_NAME[nominal_of(spec).experiment])
     return metrics, (record if spec.mode == "nominal" else trace(record)) if kept else None
 
@@ -197,11 +195,33 @@ def _profile_label(spec: RunSpec) -> str:
     return "no gap" if spec.gap is None else Path(spec.gap.source).stem
 
 
-def execute(specs: list[RunSpec], out: Path, jobs: int, keep: list[RunSpec] = (),
+def shipped_files(specs: list[RunSpec]) -> list[Path]:
+    """What the runs of `specs` read from disk: each robot config's folder and every file an override names."""
+    files = {resolve_config_path(spec.config or DEFAULT_CONFIG).parent for spec in specs}
+    files |= {Path(value).resolve() for spec in specs for value in _override_values(spec) if Path(value).is_file()}
+    return sorted(files)
+
+
+def _override_values(spec: RunSpec) -> list[str]:
+    return [item.partition("=")[2] for item in spec.overrides]
+
+
+def _as_shipped(spec: RunSpec, executor: Executor) -> RunSpec:
+    """`spec` with its files named as the executor's workers read them (the same files, shipped)."""
+    overrides = tuple(
+        f"{key}={executor.where(value)}" if Path(value).is_file() else f"{key}={value}"
+        for key, _, value in (item.partition("=") for item in spec.overrides))
+    return dataclasses.replace(spec, config=executor.where(resolve_config_path(spec.config or DEFAULT_CONFIG)),
+                               overrides=overrides)
+
+
+def execute(specs: list[RunSpec], out: Path, executor: Executor | int, keep: list[RunSpec] = (),
             progress: bool = True) -> RunResults:
-    """Run every distinct spec once (the nominal references first), `jobs` at a time, each run's metrics (and the
-    records kept: nominal runs and `keep`) cached under OUT/runs as it finishes (`transfer_cache`); what the cache
-    already holds is not run again."""
+    """Run every distinct spec once (the nominal references first) on `executor` (or that many local processes),
+    each run's metrics (and the records kept: nominal runs and `keep`) cached under OUT/runs as it finishes
+    (`transfer_cache`); what the cache already holds is not run again."""
+    if isinstance(executor, int):
+        executor = LocalExecutor(executor)
     cache = RunCache(Path(out) / "runs")
     unique: dict[str, RunSpec] = {}
     for spec in specs:
@@ -230,27 +250,27 @@ def execute(specs: list[RunSpec], out: Path, jobs: int, keep: list[RunSpec] = ()
                 report(spec, " cached")
             else:
                 todo.append((key, spec))
-        for key, spec, metrics, record in _run_stage(todo, str(cache.root), kept, jobs):
+        references: dict[str, object] = {}  # each nominal record sent to the workers once
+        calls = []
+        for key, spec in todo:
+            reference = None
+            if spec.mode != "nominal":
+                nominal = spec_key(nominal_of(spec))
+                if nominal not in references:
+                    references[nominal] = executor.share(results.records[nominal])
+                reference = references[nominal]
+            calls.append((_as_shipped(spec, executor), reference, key in kept))
+        for index, (metrics, record) in executor.map(_run_scored, calls):
+            key, spec = todo[index]
             cache.save_metrics(key, spec, metrics)
             results.metrics[key] = cache.metrics(key)  # as a resumed run reads it back (NaN -> None)
             if record is not None:
+                record = dataclasses.replace(record, spec=spec)  # named as here, not as a worker read it
                 cache.save_record(key, record)
                 results.records[key] = record
             done += 1
             report(spec, "")
     return results
-
-
-def _run_stage(todo: list[tuple[str, RunSpec]], cache_root: str, kept: set[str], jobs: int):
-    """(key, spec, metrics, record) of each run of `todo` as it finishes."""
-    if jobs <= 1 or len(todo) <= 1:
-        for key, spec in todo:
-            yield (key, spec, *_run_scored(spec, cache_root, key in kept))
-        return
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
-        futures = {pool.submit(_run_scored, spec, cache_root, key in kept): (key, spec) for key, spec in todo}
-        for future in as_completed(futures):
-            yield (*futures[future], *future.result())
 
 
 def evaluate(settings: TransferSettings, results: RunResults) -> tuple[dict, dict]:
@@ -338,7 +358,9 @@ def add_parser(commands) -> argparse.ArgumentParser:
                         "its look-ahead variant)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="robot config override for every run, e.g. transfer.observer.time_constant_s=0.5 (repeatable)")
-    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="parallel runs (default: CPU count)")
+    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+                   help="parallel runs with --executor local (default: CPU count)")
+    add_executor_arguments(p)
     p.add_argument("--config", default=None, help="robot config (default: BRUCE's)")
     return p
 
@@ -419,7 +441,13 @@ def run_transfer(args, argv: list[str]) -> int:
     figure_runs = [_spec(first, EXPERIMENT_BY_NAME[name], mode, first.seeds[0]) for name in first.experiments
                    for mode in first.modes]
     args.out.mkdir(parents=True, exist_ok=True)
-    results = execute(plan_suite(settings), args.out, settings.jobs, keep=figure_runs)
+    specs = plan_suite(settings)
+    try:
+        with make_executor(args, settings.jobs, ship=shipped_files(specs)) as executor:
+            results = execute(specs, args.out, executor, keep=figure_runs)
+    except ExecutorError as exc:
+        print(f"bruce-eval: error: {exc}", file=sys.stderr)
+        return 1
     reports = {profile.gap_name: evaluate(profile, results)[0] for profile in profiles[1:]}
     report, traces = evaluate(first, results)
     reports = {first.gap_name: report, **reports}

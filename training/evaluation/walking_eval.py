@@ -10,10 +10,10 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
+from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config, resolve_config_path
+from training.executor import ExecutorError, add_executor_arguments, make_executor
 
 # vx in {-0.5, -0.3, 0, 0.4, 0.8} x yaw rate in {-0.5, 0, 0.5}, and vy +-0.2 standing: 17 points.
 GRID = [(vx, 0.0, wz) for vx in (-0.5, -0.3, 0.0, 0.4, 0.8) for wz in (-0.5, 0.0, 0.5)] + \
@@ -47,7 +47,8 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     p.add_argument("--controller", choices=("policy", "teacher"), default="policy")
     p.add_argument("--seconds", type=float, default=20.0)
     p.add_argument("--config", default=DEFAULT_CONFIG)
-    p.add_argument("--jobs", type=int, default=2, help="parallel runs (default: %(default)s)")
+    p.add_argument("--jobs", type=int, default=2, help="parallel runs with --executor local (default: %(default)s)")
+    add_executor_arguments(p)
 
 
 def run_walking(args: argparse.Namespace) -> int:
@@ -60,10 +61,17 @@ def run_walking(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"bruce-eval: {exc}", file=sys.stderr)
         return 2
-    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        futures = [pool.submit(walk_point, str(args.config), overrides, args.controller, cmd, args.seconds)
-                   for cmd in GRID]
-        points = [f.result() for f in futures]
+    config_path = resolve_config_path(args.config)
+    try:
+        with make_executor(args, args.jobs, ship=[config_path.parent, *([args.policy] if args.policy else [])]) as ex:
+            shipped = [f"policy.model={ex.where(args.policy)}"] if args.policy else []
+            calls = [(ex.where(config_path), shipped, args.controller, cmd, args.seconds) for cmd in GRID]
+            points: list[dict] = [{}] * len(calls)
+            for index, point in ex.map(walk_point, calls):
+                points[index] = point
+    except ExecutorError as exc:
+        print(f"bruce-eval: {exc}", file=sys.stderr)
+        return 2
     passed = sum(p["passes"] for p in points)
     falls = sum(p["fell"] for p in points)
     worst = max(max(p["tracking_error"].values()) for p in points)

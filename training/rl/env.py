@@ -61,6 +61,9 @@ class WalkEnvConfig:
     num_envs: int = _setting("num_envs", 64, Bound(1, 65536, "", "simulations stepped together", integer=True))
     nthread: int = _setting("nthread", 2, Bound(0, 256, "", "rollout threads; 0: the calling thread",
                                                 integer=True))
+    # num_envs / shards simulations per shard, shard i seeded train.seed + i; with --executor ray one Ray actor each
+    # (training/rl/env_shards.py). 1: the plain environment.
+    shards: int = _setting("shards", 1, Bound(1, 4096, "", "batches of simulations stepped apart", integer=True))
     episode_s: float = _setting("episode_s", 20.0, Bound(0.01, 3600.0, "s", "time-out"))
     reset_joint_noise_rad: float = _setting("reset_joint_noise_rad", 0.05,
                                             Bound(0.0, 0.3, "rad", "uniform, around the standing pose"))

@@ -28,6 +28,7 @@ import yaml
 
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
 from runtime.recorder import file_sha256, portable_path
+from training.executor import Executor, ExecutorError, add_executor_arguments, make_executor
 from training.rl.train_config import DEFAULT_TRAINING_CONFIG, TrainingConfig, TrainingConfigError, load_training_config
 
 CHECKPOINT = "checkpoint.pt"
@@ -49,6 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="stop (with a checkpoint) after N PPO iterations of this call; --resume continues")
     p.add_argument("--export", type=Path, default=None, help="ONNX file to write at the end (default OUT/policy.onnx)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (one log line per checkpoint)")
+    add_executor_arguments(p)
     return p
 
 
@@ -63,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return train(args, config, robot, resumed)
-    except TrainingConfigError as exc:
+    except (TrainingConfigError, ExecutorError) as exc:
         print(f"bruce-train-policy: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
@@ -114,7 +116,6 @@ def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict
     from torch.utils.tensorboard import SummaryWriter
     from tqdm import tqdm
 
-    from training.rl.env import BruceWalkEnv
     from training.rl.export import export_policy
     from training.rl.ppo_loop import PolicyTrainer
     from training.rl.vec_env import RslVecEnv
@@ -122,7 +123,12 @@ def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict
 
     torch.set_num_threads(1)  # the physics threads take the cores; the small networks gain nothing from more
     args.out.mkdir(parents=True, exist_ok=True)
-    env = BruceWalkEnv(robot, config.env, seed=config.seed, reward_weights=config.reward_weights)
+    executor = make_executor(args, jobs=1, ship=[robot.path.parent])
+    try:
+        env = make_env(robot, config, executor)
+    except BaseException:
+        executor.close()
+        raise
     vec = RslVecEnv(env, config.action_scale, config.reward_scale)
     ppo = config.warm_start.ppo(config.ppo) if config.warm_start.policy else config.ppo
     trainer = PolicyTrainer(vec, ppo, seed=config.seed)
@@ -193,6 +199,30 @@ def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict
     finally:
         writer.close()
         env.close()
+        executor.close()
+
+
+def make_env(robot, config: TrainingConfig, executor: Executor):
+    """The training environment: `env.num_envs` simulations in `env.shards` shards, on Ray actors with the Ray
+    executor (training/rl/env_shards.py)."""
+    from training.rl.env import BruceWalkEnv
+    from training.rl.env_shards import LocalShards, ShardedWalkEnv, shard_config, shard_seeds
+
+    shards = config.env.shards
+    if shards == 1 and executor.name == "local":
+        return BruceWalkEnv(robot, config.env, seed=config.seed, reward_weights=config.reward_weights)
+    try:
+        per_shard = shard_config(config.env, shards)
+    except ValueError as exc:
+        raise TrainingConfigError(str(exc)) from None
+    seeds = shard_seeds(config.seed, shards)
+    if executor.name == "ray":
+        from training.rl.ray_shards import RayShards
+
+        parts = RayShards(executor, robot.path, per_shard, seeds, config.reward_weights)
+    else:
+        parts = LocalShards(robot, per_shard, seeds, config.reward_weights)
+    return ShardedWalkEnv(robot, config.env, parts)
 
 
 def _start_from_policy(trainer, vec, config: TrainingConfig, progress) -> dict:
