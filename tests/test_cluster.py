@@ -129,6 +129,22 @@ def test_collection_over_seeds_on_the_cluster_is_the_local_dataset(cluster, tmp_
     assert meta["seeds"] == [0, 1] and {e["seed"] for e in meta["episodes"]} == {0, 1}
 
 
+def test_policies_and_the_walking_grid_on_the_cluster_are_the_local_tables(cluster, tmp_path):
+    from bruce_hw.config import load_config
+
+    policy = str(load_config().models.policy)
+    policies = ["policies", "--policy", f"distilled={policy}", "--gap", "none", "--experiments", "tracking",
+                "--seeds", "0", "--seconds", "3"]
+    assert bruce_eval([*policies, "--jobs", "2", "--out", str(tmp_path / "pl")]) == 0
+    assert bruce_eval([*policies, *_ray(cluster), "--out", str(tmp_path / "pr")]) == 0
+    assert (tmp_path / "pl" / "policies.md").read_text() == (tmp_path / "pr" / "policies.md").read_text()
+    walking = ["walking", "--policy", policy, "--seconds", "2.5"]
+    assert bruce_eval([*walking, "--jobs", "2", "--out", str(tmp_path / "wl")]) == 0
+    assert bruce_eval([*walking, *_ray(cluster), "--out", str(tmp_path / "wr")]) == 0
+    local, remote = (json.loads((tmp_path / d / "walking.json").read_text()) for d in ("wl", "wr"))
+    assert local == remote and len(local["grid"]) == 17
+
+
 def _networks(run) -> dict:
     return torch.load(run / "checkpoint.pt", weights_only=False)["trainer"]["alg"]
 

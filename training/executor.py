@@ -18,6 +18,7 @@ result must not depend on where it ran: the executors give the same results run 
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import tempfile
 from abc import ABC, abstractmethod
@@ -46,6 +47,18 @@ class Executor(ABC):
     def share(self, value: Any) -> Any:
         """A handle to `value` that every call given it receives as `value` (sent to the workers once)."""
         return value
+
+    def override(self, item: str, config: str) -> str:
+        """A robot config override KEY=VALUE as a worker loading the config at `config` (as `where` names it) reads
+        it: a VALUE that names a file, named as shipped. The config reader resolves a relative file beside the
+        config, so a shipped file is named relative to the shipped config's folder."""
+        key, _, value = item.partition("=")
+        if not value or not Path(value).is_file():
+            return item
+        shipped = self.where(value)
+        if not Path(shipped).is_absolute():
+            shipped = os.path.relpath(shipped, os.path.dirname(config))
+        return f"{key}={shipped}"
 
     @abstractmethod
     def map(self, fn: Callable, calls: Iterable[tuple]) -> Iterator[tuple[int, Any]]:

@@ -208,11 +208,9 @@ def _override_values(spec: RunSpec) -> list[str]:
 
 def _as_shipped(spec: RunSpec, executor: Executor) -> RunSpec:
     """`spec` with its files named as the executor's workers read them (the same files, shipped)."""
-    overrides = tuple(
-        f"{key}={executor.where(value)}" if Path(value).is_file() else f"{key}={value}"
-        for key, _, value in (item.partition("=") for item in spec.overrides))
-    return dataclasses.replace(spec, config=executor.where(resolve_config_path(spec.config or DEFAULT_CONFIG)),
-                               overrides=overrides)
+    config = executor.where(resolve_config_path(spec.config or DEFAULT_CONFIG))
+    return dataclasses.replace(spec, config=config,
+                               overrides=tuple(executor.override(item, config) for item in spec.overrides))
 
 
 def execute(specs: list[RunSpec], out: Path, executor: Executor | int, keep: list[RunSpec] = (),

@@ -64,8 +64,9 @@ def run_walking(args: argparse.Namespace) -> int:
     config_path = resolve_config_path(args.config)
     try:
         with make_executor(args, args.jobs, ship=[config_path.parent, *([args.policy] if args.policy else [])]) as ex:
-            shipped = [f"policy.model={ex.where(args.policy)}"] if args.policy else []
-            calls = [(ex.where(config_path), shipped, args.controller, cmd, args.seconds) for cmd in GRID]
+            config = ex.where(config_path)
+            shipped = [ex.override(item, config) for item in overrides]
+            calls = [(config, shipped, args.controller, cmd, args.seconds) for cmd in GRID]
             points: list[dict] = [{}] * len(calls)
             for index, point in ex.map(walk_point, calls):
                 points[index] = point
