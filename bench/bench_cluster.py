@@ -18,7 +18,9 @@ as well (its row is added).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import io
 import os
 import shutil
 import tempfile
@@ -79,13 +81,28 @@ def time_ppo(executor, shards: int, envs: int, iterations: int, nthread: int) ->
         env.close()
 
 
+def round_trip(executor, shards: int) -> float:
+    """Seconds per batch step with one simulation per shard: what stepping costs beyond the physics."""
+    config = load_training_config(overrides=[f"env.num_envs={shards}", f"env.shards={shards}", "env.nthread=0"])
+    env = make_env(load_config(), config, executor)
+    try:
+        actions = torch.zeros(shards, env.num_actions).double().numpy() + env.robot.standing_pose
+        for _ in range(5):
+            env.step(actions)
+        start = time.perf_counter()
+        for _ in range(100):
+            env.step(actions)
+        return (time.perf_counter() - start) / 100
+    finally:
+        env.close()
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--runs", type=int, default=8, help="gapped runs in the sweep (default: %(default)s)")
     p.add_argument("--seconds", type=float, default=5.0, help="simulated seconds per run (default: %(default)s)")
-    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="local processes (default: CPU count)")
-    p.add_argument("--cpus-per-node", type=int, default=os.cpu_count() or 1,
-                   help="CPUs each Ray node started here offers (default: CPU count)")
+    cores = os.cpu_count() or 1
+    p.add_argument("--jobs", type=int, default=cores, help="local processes (default: CPU count)")
     p.add_argument("--envs", type=int, default=256, help="simulations in the PPO batch (default: %(default)s)")
     p.add_argument("--iterations", type=int, default=3, help="timed PPO iterations (default: %(default)s)")
     p.add_argument("--address", default=None, help="also measure this running cluster (auto or HOST:PORT)")
@@ -93,31 +110,41 @@ def main() -> None:
     torch.set_num_threads(1)  # as bruce-train-policy
     from ray.cluster_utils import Cluster
 
+    def cluster(nodes: int, cpus: int) -> Cluster:
+        made = Cluster(initialize_head=True, head_node_args={"num_cpus": cpus})
+        for _ in range(nodes - 1):
+            made.add_node(num_cpus=cpus)
+        made.wait_for_nodes()
+        return made
+
     config_folder = resolve_config_path(DEFAULT_CONFIG).parent
     specs = sweep_specs(args.runs + 1, args.seconds)[1:]  # distinct seeds
-    print(f"machine: {os.cpu_count()} CPUs; sweep: {len(specs)} runs of {args.seconds:g} s; "
-          f"PPO: {args.envs} envs, {args.iterations} timed iterations")
-    sweep: list[tuple[str, float]] = [(f"local ({args.jobs} processes)", time_sweep(specs, LocalExecutor(args.jobs)))]
-    ppo: list[tuple[str, float, float]] = []
-    ppo.append((f"local (1 batch, {os.cpu_count()} threads)",
-                *time_ppo(LocalExecutor(1), 1, args.envs, args.iterations, nthread=os.cpu_count() or 1)))
+    print(f"machine: {cores} CPUs; sweep: {len(specs)} runs of {args.seconds:g} s; "
+          f"PPO: {args.envs} envs, {args.iterations} timed iterations", flush=True)
+    with contextlib.redirect_stdout(io.StringIO()):  # each run's summary
+        sweep = [(f"local ({args.jobs} processes)", time_sweep(specs, LocalExecutor(args.jobs)))]
+    # The sweep's clusters offer this machine's cores, on one node or split over two: Ray's cost, not more cores.
+    for nodes, cpus in ((1, cores), (2, max(1, cores // 2))):
+        made = cluster(nodes, cpus)
+        try:
+            with RayExecutor(made.address, ship=[config_folder]) as executor:
+                sweep.append((f"Ray, {nodes} node(s) x {cpus} CPU(s)", time_sweep(specs, executor)))
+        finally:
+            made.shutdown()
+    ppo = [(f"local (1 batch, {cores} threads)", *time_ppo(LocalExecutor(1), 1, args.envs, args.iterations, cores))]
     local = time_ppo(LocalExecutor(1), 1, args.envs, args.iterations, nthread=1)
     ppo.append(("local (1 batch, 1 thread)", *local))
-    clusters = [("Ray, 1 node", 1), ("Ray, 2 nodes", 2)]
-    for label, nodes in clusters:
-        cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": args.cpus_per_node})
-        for _ in range(nodes - 1):
-            cluster.add_node(num_cpus=args.cpus_per_node)
-        cluster.wait_for_nodes()
-        try:
-            with RayExecutor(cluster.address, ship=[config_folder]) as executor:
-                sweep.append((f"{label} x {args.cpus_per_node} CPUs", time_sweep(specs, executor)))
-                if nodes == 2:
-                    for actors in (1, 2, 4):
-                        ppo.append((f"Ray, {actors} actor(s) on 2 nodes",
-                                    *time_ppo(executor, actors, args.envs, args.iterations, nthread=1)))
-        finally:
-            cluster.shutdown()
+    trips = [("local, 1 shard", round_trip(LocalExecutor(1), 1))]
+    # 4 actors of 1 CPU each need 4 logical CPUs: two nodes of 2 (on a 2-core machine they share its cores).
+    made = cluster(2, 2)
+    try:
+        with RayExecutor(made.address, ship=[config_folder]) as executor:
+            for actors in (1, 2, 4):
+                ppo.append((f"Ray, {actors} actor(s), 2 nodes", *time_ppo(executor, actors, args.envs,
+                                                                         args.iterations, nthread=1)))
+            trips += [(f"Ray, {actors} actor(s)", round_trip(executor, actors)) for actors in (1, 2, 4)]
+    finally:
+        made.shutdown()
     if args.address:
         with RayExecutor(args.address, ship=[config_folder]) as executor:
             cpus = int(executor.resources().get("CPU", 0))
@@ -125,16 +152,22 @@ def main() -> None:
             for actors in (1, 2, 4):
                 ppo.append((f"Ray at {args.address}, {actors} actor(s)",
                             *time_ppo(executor, actors, args.envs, args.iterations, nthread=1)))
+            trips += [(f"Ray at {args.address}, {actors} actor(s)", round_trip(executor, actors))
+                      for actors in (1, 2, 4)]
     print("\n| sweep executor | runs/min |\n|---|---|")
     for label, rate in sweep:
         print(f"| {label} | {rate:.1f} |")
-    print("\n| PPO environment | policy steps/s (whole iterations) | batch step (ms) | vs local, 1 thread (ms) |")
-    print("|---|---|---|---|")
+    print("\n| PPO environment | policy steps/s (whole iterations) | batch step of the rollout (ms) |")
+    print("|---|---|---|")
     for label, rate, step in ppo:
-        print(f"| {label} | {rate:,.0f} | {step * 1e3:.1f} | {(step - local[1]) * 1e3:+.1f} |")
-    one_actor = next(step for label, _, step in ppo if label.startswith("Ray, 1 actor"))
-    print(f"\nRay adds {(one_actor - local[1]) * 1e3:.1f} ms per batch step with 1 actor (both on 1 rollout "
-          f"thread), {(one_actor - local[1]) * 1e6 / args.envs:.1f} us per policy step of {args.envs} envs")
+        print(f"| {label} | {rate:,.0f} | {step * 1e3:.1f} |")
+    print("\n| one simulation per shard (the cost beyond physics) | batch step (ms) |\n|---|---|")
+    for label, step in trips:
+        print(f"| {label} | {step * 1e3:.2f} |")
+    one_actor = dict(trips)["Ray, 1 actor(s)"]
+    print(f"\nRay adds {(one_actor - trips[0][1]) * 1e3:.2f} ms per batch step (1 actor, 1 simulation, against the "
+          f"same shard stepped here); per policy step of a {args.envs}-simulation batch: "
+          f"{(one_actor - trips[0][1]) * 1e6 / args.envs:.1f} us")
 
 
 if __name__ == "__main__":
