@@ -172,6 +172,7 @@ class TransferConfig:
     twin_lag_ticks: int = 10             # the integral acts on the twin's offset this many ticks old (its own thread)
     twin_command_time_constant_s: float = 0.0  # > 0: the twin's command correction settles this slowly; 0: off
     twin_dead_band_rad: float = 0.0      # the integral acts past Eq. 8 Kp x this, the shadow's share fades in past it
+    twin_resolution_counts: float = 0.0  # ... and past this many of the joint's encoder steps seen (0: off)
     gap_monitor_window_s: float = 0.1
     gap_monitor_warn_rms: float = 2.0    # rad/s
 
@@ -284,6 +285,7 @@ BOUNDS: dict[str, Bound] = {
                                      integer=True),
     "transfer.twin.command_time_constant_s": Bound(0.0, 60.0, "s", "command correction settling; 0: off"),
     "transfer.twin.dead_band_rad": Bound(0.0, 0.05, "rad", "dead band as a posture offset at Eq. 8 Kp; 0: off"),
+    "transfer.twin.resolution_counts": Bound(0.0, 100.0, "", "dead band of at least this many encoder steps; 0: off"),
     "estimator.level_from_feet_s": Bound(0.0, 10.0, "s", "start-up levelling: the robot stands still that long"),
     "transfer.gap_monitor.window_s": Bound(0.005, 10.0, "s", "RMS window of the one-step residual"),
     "transfer.gap_monitor.warn_rms": Bound(0.0, 100.0, "rad/s", "window RMS that logs a warning", low_open=True),

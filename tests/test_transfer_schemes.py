@@ -447,6 +447,21 @@ def test_the_dead_band_gives_out_the_integral_past_it_and_fades_the_inner_correc
     assert integral.u[0] == pytest.approx(0.7)
 
 
+def test_the_band_grows_to_the_encoder_steps_seen_and_not_for_a_continuous_reading():
+    # joint 0 read in counts of 0.01 rad, joint 1 continuous (noise); Kp 10, band 0.001 rad (0.01 N·m), 2 counts
+    twin = ScriptedTwin([[0.0, 0.0]] * 6)
+    integral = TwinIntegral(twin, np.array([1.0, 1.0]), np.array([10.0, 10.0]), hold_ticks=0,
+                            dead_band=np.array([0.01, 0.01]), resolution_counts=2.0, kp=np.array([10.0, 10.0]))
+    scheme = TwinScheme(FixedCorrection([0.5, 0.5]), InlineTwinRunner(integral, 0), lambda: RESYNC, 1000,
+                        decimation=1)
+    readings = [[0.0, 0.0], [0.0, 1e-4], [0.01, 3e-5], [0.03, 2e-5], [0.02, 1e-5], [0.02, 1.5e-5]]
+    for q in readings:
+        scheme.predict(np.zeros(2), np.array(q), np.zeros(2), np.zeros(2))
+    np.testing.assert_allclose(integral.resolution, [0.01, 5e-6])
+    np.testing.assert_allclose(integral.band, [2 * 10.0 * 0.01, 0.01])  # 2 counts at Kp; the set band stands
+    assert not scheme.engaged.any()  # before any offset: direct transfer
+
+
 def test_without_a_dead_band_the_inner_correction_is_applied_whole():
     twin = ScriptedTwin([[0.0]] * 3)
     scheme = scripted_scheme(FixedCorrection([0.5]), twin, gain=[1.0], clip=[10.0], hold_ticks=0)

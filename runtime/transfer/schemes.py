@@ -201,7 +201,9 @@ class TwinScheme(TransferScheme):
     def _clear(self) -> None:
         self.q_hat = self.qd_hat = self.one_step = None
         self.u = np.zeros_like(self.u)
-        self.engaged = np.ones_like(self.u) if not self.runner.integral.dead_band.any() else np.zeros_like(self.u)
+        integral = self.runner.integral
+        banded = integral.dead_band.any() or integral.resolution_counts > 0
+        self.engaged = np.zeros_like(self.u) if banded else np.ones_like(self.u)
         self.command_offset = np.zeros(3)
         self._command: np.ndarray | None = None  # the command in force, as the twin gets it
         self._tick = 0
@@ -285,7 +287,8 @@ def build_scheme(config: RobotConfig, name: str, pinn_path: Path | None = None, 
             1.0 / (config.policy_hz * settings.twin_command_time_constant_s))
         integral = TwinIntegral(NominalTwin(config, controller), gain, settings.twin_clip * config.tau_limit,
                                 hold_ticks=-(-(ramp + 1) // resync) * resync, disturbance=settings.twin_disturbance_rad,
-                                command_gain=command_gain, dead_band=settings.twin_dead_band_rad * config.eq8.kp)
+                                command_gain=command_gain, dead_band=settings.twin_dead_band_rad * config.eq8.kp,
+                                resolution_counts=settings.twin_resolution_counts, kp=config.eq8.kp)
         runner = (ThreadTwinRunner if paced else InlineTwinRunner)(integral, settings.twin_lag_ticks)
         return TwinScheme(inner, runner, _resync_state(name, base_state, estimator), resync,
                           config.policy_decimation, velocity=None if estimator is None else estimator.estimate)

@@ -32,6 +32,8 @@ MAX_BACKLOG_TICKS = 200  # 0.2 s: beyond it the twin's offsets are too old to in
 
 # The command correction stays within these (vx m/s, vy m/s, yaw rate rad/s): a quarter of the policy's range.
 COMMAND_CLIP = np.array([0.1, 0.1, 0.25])
+# A change of the measured angle below this is not an encoder step (float round-off of a held reading).
+RESOLUTION_FLOOR_RAD = 1e-9
 
 
 class TwinOutput(NamedTuple):
@@ -53,6 +55,11 @@ class TwinIntegral:
     through it. `engaged` = clip(|u| / dead_band - 1, 0, 1) per joint: whether the twin sees an offset its own noise
     does not explain, given to the inner scheme as the share of its correction to apply (`TwinScheme`).
 
+    With `resolution_counts` > 0 the band is at least that many of the joint's encoder steps (at Eq. 8 Kp, `kp`):
+    the smallest change of the measured angle seen so far, a robot's own figure (an encoder read in counts changes
+    by whole counts; a continuous signal with noise by ever smaller amounts, leaving the band as set). An offset
+    below what the encoder resolves is not one the twin can tell from the quantisation.
+
     With `command_gain` > 0, also the command correction: on policy ticks, du_cmd <- clip(du_cmd + command_gain
     (v_twin - v), +- COMMAND_CLIP), v the robot's estimated (vx, vy, yaw rate) and v_twin the twin's estimator's on
     the same command: an integral on the velocity the policy leaves to its own tracking, added to the robot's
@@ -60,12 +67,15 @@ class TwinIntegral:
     stays at zero there."""
 
     def __init__(self, twin: NominalTwin, gain: np.ndarray, clip: np.ndarray, hold_ticks: int,
-                 disturbance: float = np.inf, command_gain: float = 0.0, dead_band: np.ndarray | None = None):
+                 disturbance: float = np.inf, command_gain: float = 0.0, dead_band: np.ndarray | None = None,
+                 resolution_counts: float = 0.0, kp: np.ndarray | None = None):
         self.twin = twin
         self.gain, self.clip, self.hold_ticks = gain, clip, hold_ticks  # gain: N·m per rad of offset, per tick
         self.disturbance = disturbance
         self.command_gain = command_gain  # per policy tick, per (m/s or rad/s) of velocity difference
         self.dead_band = np.zeros_like(gain) if dead_band is None else np.asarray(dead_band, float)
+        self.resolution_counts = float(resolution_counts)
+        self.kp = np.zeros_like(gain) if kp is None else np.asarray(kp, float)
         self.reset()
 
     def reset(self) -> None:
@@ -73,19 +83,34 @@ class TwinIntegral:
         self.u = np.zeros_like(self.gain)
         self.command = np.zeros(3)  # the command correction
         self._last_tick = -2
+        self.band = self.dead_band.copy()  # the dead band in force (N·m): at least `resolution_counts` steps
+        self.resolution = np.full_like(self.gain, np.inf)  # the smallest change of each measured angle seen (rad)
+        self._q_last: np.ndarray | None = None
 
     def output(self) -> TwinOutput:
         """The integral as the control thread uses it (new arrays: the integral never writes into them)."""
-        past = np.maximum(np.abs(self.u) - self.dead_band, 0.0)
+        band = self.band
+        past = np.maximum(np.abs(self.u) - band, 0.0)
         with np.errstate(divide="ignore", invalid="ignore"):
-            engaged = np.where(self.dead_band > 0, np.minimum(past / self.dead_band, 1.0), 1.0)
+            engaged = np.where(band > 0, np.minimum(past / band, 1.0), 1.0)
         return TwinOutput(np.sign(self.u) * past, self.command.copy(), engaged)
+
+    def _see_resolution(self, q: np.ndarray) -> None:
+        if self._q_last is not None:
+            change = np.abs(q - self._q_last)
+            self.resolution = np.where(change > RESOLUTION_FLOOR_RAD, np.minimum(self.resolution, change),
+                                       self.resolution)
+            seen = np.where(np.isfinite(self.resolution), self.resolution, 0.0)
+            self.band = np.maximum(self.dead_band, self.resolution_counts * self.kp * seen)
+        self._q_last = q
 
     def step(self, step: TwinInput) -> bool:
         """Compare the twin's posture predicted for this tick with the measured one, integrate, advance the twin;
         True when the offset looks like a push (resync wanted). A tick after a gap in the input (the twin fell
         behind) is not compared: the twin's posture is from before the gap."""
         request = False
+        if self.resolution_counts:
+            self._see_resolution(step.q)
         if self.twin.q is not None and step.tick == self._last_tick + 1:
             offset = self.twin.q - step.q
             if np.abs(offset).max() > self.disturbance:
@@ -111,7 +136,8 @@ class InlineTwinRunner:
     def _zero(self) -> TwinOutput:
         """Before the twin's first answer: no torque, no command correction, the inner scheme not engaged."""
         zeros = np.zeros_like(self.integral.gain)
-        return TwinOutput(zeros, np.zeros(3), zeros if self.integral.dead_band.any() else np.ones_like(zeros))
+        banded = self.integral.dead_band.any() or self.integral.resolution_counts > 0
+        return TwinOutput(zeros, np.zeros(3), zeros if banded else np.ones_like(zeros))
 
     def reset(self) -> None:
         self.integral.reset()
