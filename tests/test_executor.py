@@ -95,3 +95,15 @@ def test_one_shard_steps_as_the_plain_env_and_shards_checkpoint_and_restore():
     two.set_state(saved)
     np.testing.assert_array_equal([two.step(a)[1] for a in actions[12:]], after)
     assert set(one.get_state()) == set(plain.get_state())  # one shard: the plain env's checkpoint
+
+
+@pytest.mark.parametrize("address, says", [("127.0.0.1:1", "no Ray head answers there"),
+                                           ("auto", "Could not find any running Ray instance")])
+def test_no_cluster_at_the_address_is_one_line_in_seconds(address, says, tmp_path, capsys, monkeypatch):
+    pytest.importorskip("ray")
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    code = bruce_eval(["transfer", "--gap", "none", "--experiments", "tracking", "--seeds", "0", "--seconds", "3",
+                       "--latencies-ms", "", "--gain-scales", "", "--schemes", "shadow", "--executor", "ray",
+                       "--ray-address", address, "--out", str(tmp_path)])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("bruce-eval")]
+    assert code == 1 and len(err) == 1 and f"--ray-address {address}: cannot join" in err[0] and says in err[0]

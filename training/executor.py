@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import socket
 import tempfile
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator
@@ -111,14 +112,19 @@ class RayExecutor(Executor):
         self._shipped: dict[Path, str] = {}
         for path in ship:
             self._ship(Path(path))
-        self._started_here = not ray.is_initialized()
-        if self._started_here:
-            try:
-                ray.init(address=address, runtime_env={"working_dir": str(self._staging)}, num_cpus=num_cpus,
-                         log_to_driver=False, include_dashboard=False, logging_level="ERROR")
-            except (ConnectionError, RuntimeError, ValueError) as exc:
-                shutil.rmtree(self._staging, ignore_errors=True)
-                raise ExecutorError(f"--ray-address {address}: cannot join a Ray cluster there ({exc})") from None
+        # The files go with the job (Ray ships a local directory only in `ray.init`'s runtime_env), so this executor
+        # connects the process itself.
+        if ray.is_initialized():
+            shutil.rmtree(self._staging, ignore_errors=True)
+            raise ExecutorError("--executor ray: this process is connected to Ray already; the executor connects "
+                                "it itself, to ship the job's files (call ray.shutdown() first)")
+        try:
+            _reachable(address)
+            ray.init(address=address, runtime_env={"working_dir": str(self._staging)}, num_cpus=num_cpus,
+                     log_to_driver=False, include_dashboard=False, logging_level="ERROR")
+        except (ConnectionError, RuntimeError, ValueError) as exc:
+            shutil.rmtree(self._staging, ignore_errors=True)
+            raise ExecutorError(f"--ray-address {address}: cannot join a Ray cluster there ({exc})") from None
 
     def _ship(self, path: Path) -> str:
         """Copy a file, or a folder whole, into the job's working dir; its path there, relative to a worker's cwd."""
@@ -160,9 +166,20 @@ class RayExecutor(Executor):
         return self._ray.cluster_resources()
 
     def close(self) -> None:
-        if self._started_here and self._ray.is_initialized():
+        if self._ray.is_initialized():
             self._ray.shutdown()
         shutil.rmtree(self._staging, ignore_errors=True)
+
+
+def _reachable(address: str | None, timeout_s: float = 5.0) -> None:
+    """A HOST:PORT that nothing answers at fails here, in seconds (Ray's own connect retries for minutes)."""
+    if not address or address == "auto" or "://" in address:
+        return
+    host, _, port = address.rpartition(":")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except (OSError, ValueError) as exc:
+        raise ConnectionError(f"no Ray head answers there: {exc}") from None
 
 
 def add_executor_arguments(p: argparse.ArgumentParser, jobs_default: int | None = None) -> None:
