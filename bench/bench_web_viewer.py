@@ -4,8 +4,8 @@ Three paced mock walks (`bruce-run --backend mock --realtime --cmd 0.4,0,0 --dur
 process of its own, as a user runs it), one after the other, `--repeat` times:
     off   --rerun off
     save  --rerun save=TMP/walk.rrd
-    web   --rerun web=PORT,grpc_port=PORT with headless Chromium (tests/chromium_driver.py: software rendering) on
-          the link bruce-run prints, from as soon as it is printed to the end of the run
+    web   --rerun web=PORT,grpc_port=PORT with headless Chromium (tests/support/chromium_driver.py: software rendering)
+          on the link bruce-run prints, from as soon as it is printed to the end of the run
 Per walk: the late share (ticks > 250 µs behind), skipped deadlines, the period's p99 and maximum, tick work p99 and
 the rows telemetry dropped; for web also when the viewer started reading, the bytes it read, its CPU use and where
 its time cursor stood at the end against the run's length (how far behind the live run it was). Then the ratios
@@ -34,7 +34,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))  # the Chromium driver the browser tests use
 
-from chromium_driver import CHROMIUM, HeadlessChromium  # noqa: E402
+from support.chromium_driver import CHROMIUM, HeadlessChromium  # noqa: E402
 
 LINK_TIMEOUT_S = 90.0
 KINDS = ("off", "save", "web")

@@ -5,7 +5,7 @@ What a policy observes, at which rate and in which joint order, and how its outp
 (`runtime.policy_spec`); ours is the paper's Table I (`observation_layout`, the shipped spec `table1.yaml`).
 `ObservationBuilder` builds the Table I observation, also for batches of simulated robots (training), and
 `SpecObservation` builds a spec's; both take the clock, the followed command and the heading error from
-`advance_references`, and tests/test_policy_spec.py holds them equal on Table I, so training and the runtime
+`advance_references`, and tests/runtime/test_policy_spec.py holds them equal on Table I, so training and the runtime
 cannot disagree on it.
 """
 

@@ -53,7 +53,8 @@ class WalkStep:
 @dataclass(frozen=True)
 class RewardParams:
     """The constants Table II leaves open, for BRUCE. Computed once with MuJoCo from configs/robots/bruce.yaml's
-    standing pose (the mock's `place`: base level, soles on the floor; tests/test_rl_rewards.py recomputes them)."""
+    standing pose (the mock's `place`: base level, soles on the floor; tests/training/rl/test_rl_rewards.py recomputes
+    them)."""
 
     feet_distance: float = 0.1394   # m, D_f^des: |r_sole - l_sole| standing
     knee_distance: float = 0.1461   # m, D_k^des: |r_shank - l_shank| (knee joint centres) standing

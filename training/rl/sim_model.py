@@ -5,7 +5,7 @@ Each actuator computes force = clamp(kp (act - q) - kd qd, +-joint torque limit)
 PD target a_t) through a first-order filter (`filterexact`, time constant 0: no lag) evaluated early (`actearly`), so
 the force of a step already uses the filtered target of that step, as `bruce_hw.reality_gap.ActuatorGap.lag` does for
 the torque. Without randomisation the model steps exactly as the mock does under the runtime's Eq. 8
-(tests/test_rl_env.py), except that the mock saturates per actuator through the coupling.
+(tests/training/rl/test_rl_env.py), except that the mock saturates per actuator through the coupling.
 """
 
 from __future__ import annotations

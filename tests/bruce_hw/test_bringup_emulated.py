@@ -1,22 +1,20 @@
-"""The bring-up suite for the real robot (tests/test_bringup.py, marker `hardware`) as CI runs it: the same tests,
-pointed at `bruce-emulate`'s ports (`--bruce-emulate`), in a pytest of their own, with the emulator tests' wall-clock
-slack (`WALL_CLOCK_SLACK`: the emulator shares this machine's two cores, so its packets and the host are sometimes
-tens of milliseconds late)."""
+"""The bring-up suite for the real robot (tests/bruce_hw/test_bringup.py, marker `hardware`) as CI runs it: the same
+tests, pointed at `bruce-emulate`'s ports (`--bruce-emulate`), in a pytest of their own, with the emulator tests'
+wall-clock slack (`WALL_CLOCK_SLACK`: the emulator shares this machine's two cores, so its packets and the host are
+sometimes tens of milliseconds late)."""
 
 import subprocess
 import sys
-from pathlib import Path
 
-from conftest import WALL_CLOCK_SLACK
-
-ROOT = Path(__file__).resolve().parents[1]
+from support.emulated_robot import WALL_CLOCK_SLACK
+from support.paths import REPO
 
 
 def bringup(*options: str) -> subprocess.CompletedProcess:
     slack = [word for item in WALL_CLOCK_SLACK for word in ("--bruce-set", item)]
-    return subprocess.run([sys.executable, "-m", "pytest", "-m", "hardware", "tests/test_bringup.py", "--bruce-emulate",
-                           "-q", "-p", "no:cacheprovider", *slack, *options], cwd=ROOT, capture_output=True,
-                          text=True, timeout=600)
+    return subprocess.run([sys.executable, "-m", "pytest", "-m", "hardware", "tests/bruce_hw/test_bringup.py",
+                           "--bruce-emulate", "-q", "-p", "no:cacheprovider", *slack, *options], cwd=REPO,
+                          capture_output=True, text=True, timeout=600)
 
 
 def test_the_bringup_suite_passes_against_the_emulators():

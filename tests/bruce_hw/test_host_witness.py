@@ -10,7 +10,8 @@ import time
 
 import numpy as np
 import pytest
-from test_safety import robot, running_stage
+from support.paths import REPO
+from support.safety_fixtures import robot, running_stage
 
 from bruce_hw.host_witness import HostWitness
 from bruce_hw.leg_bus import LegReading, silence
@@ -76,7 +77,7 @@ def test_the_safety_stage_judges_age_and_rate_on_the_time_the_process_ran(config
 def test_the_bus_thread_holds_the_command_on_the_time_the_process_ran():
     """No post for 60 ms: a hung control thread (the cycles stop after hold_s, the motors' watchdogs take over),
     unless that time was a host stall, after which the thread cycles on at once with the command it has."""
-    from test_bus_thread import FakeBus, wait_for
+    from support.fake_bus import FakeBus, wait_for
 
     from bruce_hw.bus_thread import BusThread
 
@@ -114,7 +115,7 @@ print(w.worst_s, flush=True)
 
 def test_the_witness_sees_its_process_stopped():
     """SIGSTOP for 60 ms: every thread of the process stops, as in a VM stall; the witness records at least that."""
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    root = str(REPO)
     child = subprocess.Popen([sys.executable, "-c", WITNESS_CHILD.format(root=root)], stdin=subprocess.PIPE,
                              stdout=subprocess.PIPE, text=True)
     try:

@@ -2,26 +2,11 @@
 cycle, a hung control thread stops the cycles (the motors' watchdogs take over), a failing cycle is kept for the
 control thread. Bounds are one-sided where a loaded machine could only make them pass later, never earlier."""
 
-import threading
 import time
 
+from support.fake_bus import FakeBus, wait_for
+
 from bruce_hw.bus_thread import BusThread
-
-
-class FakeBus:
-    def __init__(self, cycle_s: float = 0.0, fail_at: int | None = None):
-        self.cycle_s, self.fail_at = cycle_s, fail_at
-        self.sent: list = []
-        self.lock = threading.Lock()
-
-    def cycle(self, command):
-        with self.lock:
-            if self.fail_at is not None and len(self.sent) >= self.fail_at:
-                raise OSError("the adapter is gone")
-            self.sent.append(command)
-            n = len(self.sent)
-        time.sleep(self.cycle_s)
-        return ("reading", n, command)
 
 
 def cycling(bus: FakeBus, period_s: float, hold_s: float) -> BusThread:
@@ -29,15 +14,6 @@ def cycling(bus: FakeBus, period_s: float, hold_s: float) -> BusThread:
     thread.start()
     thread.begin(("first", 0, None))
     return thread
-
-
-def wait_for(predicate, timeout_s: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.001)
-    return False
 
 
 def test_a_posted_command_reaches_the_bus_and_its_reading_comes_back():

@@ -1,9 +1,10 @@
-"""Bring-up of a real BRUCE on its stand, step by step (docs/bringup.md): `pytest -m hardware tests/test_bringup.py -s`.
+"""Bring-up of a real BRUCE on its stand, step by step (docs/bringup.md):
+`pytest -m hardware tests/bruce_hw/test_bringup.py -s`.
 
 The ports are the robot config's (`--bruce-config PATH`, `--bruce-set KEY=VALUE` as bruce-run's `--set`); with
 `--bruce-emulate` the same steps run against `bruce-emulate --realtime --lockstep`, which also plays the person at
-the E-stop and the cable (CI runs them so: tests/test_bringup_emulated.py). Each step is safe on its own: it starts
-from torque off and leaves every motor damping or off. A step that fails skips every step after it (a robot that
+the E-stop and the cable (CI runs them so: tests/bruce_hw/test_bringup_emulated.py). Each step is safe on its own: it
+starts from torque off and leaves every motor damping or off. A step that fails skips every step after it (a robot that
 did not answer is not enabled). Each prints what a person at the robot should see.
 """
 

@@ -16,7 +16,7 @@ import sys
 import time
 
 import pytest
-from conftest import BEAR_IDS, DXL_IDS, WALL_CLOCK_SLACK
+from support.emulated_robot import BEAR_IDS, DXL_IDS, WALL_CLOCK_SLACK
 
 from bruce_hw import BackendError
 from bruce_hw.emulator_process import FaultAt, reply_time

@@ -16,7 +16,7 @@ import subprocess
 import time
 
 import pytest
-from conftest import BEAR_IDS, DXL_IDS
+from support.emulated_robot import BEAR_IDS, DXL_IDS
 
 from runtime.exit import ExitCode
 

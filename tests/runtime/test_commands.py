@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support.paths import REPO
 
 from bruce_hw.config import ConfigError
 from bruce_hw.mock import MujocoBackend
@@ -17,7 +18,7 @@ from runtime.observers import TRACKING_SKIP_S, GroundTruthLog, heading_velocity
 from runtime.run import run_session
 from runtime.standing import StandingController
 
-SCENARIOS = Path(__file__).resolve().parent.parent / "configs" / "scenarios"
+SCENARIOS = REPO / "configs" / "scenarios"
 
 
 class CommandRecorder(StandingController):

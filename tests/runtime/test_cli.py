@@ -66,7 +66,7 @@ def test_signal_ends_in_damping_with_a_clean_exit_and_stats(tmp_path, sig):
 
 
 def test_saved_rrd_is_complete_after_ctrl_c(tmp_path):
-    from test_telemetry import rrd_entity_paths
+    from support.rrd import rrd_entity_paths
 
     recording = tmp_path / "runs" / "run.rrd"
     proc = subprocess.Popen([sys.executable, "-m", "runtime.cli", "--realtime", "--rerun", f"save={recording}"],

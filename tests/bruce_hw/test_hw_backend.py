@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import WALL_CLOCK_SLACK
+from support.emulated_robot import WALL_CLOCK_SLACK
 
 from bruce_hw import BackendError, JointCommand, LifecycleState
 from bruce_hw.attitude import MahonyAttitude

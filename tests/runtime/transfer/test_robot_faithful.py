@@ -12,7 +12,7 @@ import sys
 import mujoco
 import numpy as np
 import pytest
-from conftest import WALL_CLOCK_SLACK
+from support.emulated_robot import WALL_CLOCK_SLACK
 
 from bruce_hw.backend import TruthSealed
 from bruce_hw.config import load_config

@@ -1,6 +1,6 @@
 """The executors for independent runs (training/executor.py) and what the commands build on them: every call's result
 comes back once, under its own index; a bad executor option is one line; seeds merge into one dataset in order;
-the walking environment in shards steps as the plain environment. The cluster itself: tests/test_cluster.py."""
+the walking environment in shards steps as the plain environment. The cluster itself: tests/training/test_cluster.py."""
 
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
 """How a run ends, on the mock: exit codes per fault class, stats on every path, models refused before the motors
-are enabled, and a stop signal during start-up that enables nothing. (The same on hw: tests/test_hw_safety.py.)"""
+are enabled, and a stop signal during start-up that enables nothing. (The same on hw:
+tests/bruce_hw/test_hw_safety.py.)"""
 
 import json
 import os

@@ -1,6 +1,6 @@
 """Headless Chromium driven over the DevTools protocol on a pipe (`--remote-debugging-pipe`: NUL-terminated JSON on
-fds 3 and 4, so no websocket client is needed), for the browser tests (tests/test_web_viewer.py) and the web viewer
-benchmark (bench/bench_web_viewer.py). Needs Debian's `chromium` (`apt-get install chromium`)."""
+fds 3 and 4, so no websocket client is needed), for the browser tests (tests/runtime/telemetry/test_web_viewer.py) and
+the web viewer benchmark (bench/bench_web_viewer.py). Needs Debian's `chromium` (`apt-get install chromium`)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""rerun's web viewer in a real browser: headless Chromium (software rendering, tests/chromium_driver.py) opens the
-link that `bruce-run --rerun web` and `bruce-view --web` print, and the tests check what a lab would see: the page
+"""rerun's web viewer in a real browser: headless Chromium (software rendering, tests/support/chromium_driver.py) opens
+the link that `bruce-run --rerun web` and `bruce-view --web` print, and the tests check what a lab would see: the page
 loads, the viewer reads the gRPC stream, the screenshots show something that moves, and a frozen or closed tab
 never holds up the run. Needs Debian's `chromium` (`apt-get install chromium`); skipped without it.
 """
@@ -18,12 +18,19 @@ import time
 from pathlib import Path
 
 import pytest
-from chromium_driver import CHROMIUM, HeadlessChromium, changed_share, drawn, established_connections, server_sockets
+from support.chromium_driver import (
+    CHROMIUM,
+    HeadlessChromium,
+    changed_share,
+    drawn,
+    established_connections,
+    server_sockets,
+)
+from support.paths import REPO
 
 pytestmark = [pytest.mark.browser,
               pytest.mark.skipif(CHROMIUM is None, reason="needs Debian's chromium on PATH (apt-get install chromium)")]
 
-REPO = Path(__file__).resolve().parents[1]
 START_TIMEOUT_S = 90.0    # bruce-run's or bruce-view's link, on a loaded machine
 CONNECT_TIMEOUT_S = 90.0  # page, wasm and the first bytes of the stream, software-rendered
 DRAW_TIMEOUT_S = 60.0

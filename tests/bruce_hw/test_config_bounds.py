@@ -15,6 +15,7 @@ import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from support.paths import REPO
 
 from bruce_hw.config import (
     BOUNDS,
@@ -30,7 +31,6 @@ from bruce_hw.reality_gap import GAP_BOUNDS, GapError, load_gap, profile_names
 from bruce_hw.yaml_reader import Bound, apply_overrides
 from runtime.commands import SCENARIO_BOUNDS, CommandSchedule
 
-ROOT = Path(__file__).resolve().parent.parent
 ROBOTS = ("configs/robots/bruce.yaml", "configs/robots/bruce_can.yaml")
 CAN = ROBOTS[1]
 
@@ -247,14 +247,14 @@ def test_every_shipped_number_has_a_bound_and_is_inside(path):
 
 def test_shipped_gaps_and_scenarios_are_inside_their_tables():
     for name in profile_names():
-        tree = yaml.safe_load((ROOT / "configs" / "gaps" / f"{name}.yaml").read_text())
+        tree = yaml.safe_load((REPO / "configs" / "gaps" / f"{name}.yaml").read_text())
         for key, value in numeric_leaves(tree):
             if key != "seed":
                 base = re.sub(r"\[\d+\]$", "", key)
                 bound = GAP_BOUNDS.get(base) or GAP_BOUNDS[base.rsplit(".", 1)[0]]  # per joint: section.name.joint
                 assert bound.contains(value), (name, key, value)
         load_gap(name)
-    for path in sorted((ROOT / "configs" / "scenarios").glob("*.yaml")):
+    for path in sorted((REPO / "configs" / "scenarios").glob("*.yaml")):
         for key, value in numeric_leaves(yaml.safe_load(path.read_text())):
             pattern = re.sub(r"\[\d+\]", "[*]", key)
             if ".cmd[" in pattern:
@@ -264,7 +264,7 @@ def test_shipped_gaps_and_scenarios_are_inside_their_tables():
 
 
 def test_the_doc_lists_every_bound_with_its_range():
-    doc = (ROOT / "docs" / "config_bounds.md").read_text()
+    doc = (REPO / "docs" / "config_bounds.md").read_text()
     for table in (BOUNDS, GAP_BOUNDS, SCENARIO_BOUNDS):
         for key, bound in table.items():
             row = f"| `{key}` | {bound.unit or '–'} | {bound.interval()}{' (integer)' if bound.integer else ''} |"
