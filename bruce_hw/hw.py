@@ -15,6 +15,7 @@ import atexit
 import importlib.util
 import logging
 import os
+import re
 import sys
 import time
 
@@ -79,6 +80,21 @@ def make_hw_backend(config: RobotConfig, **options) -> HwBackend:
     if missing:
         raise BackendError("backend 'hw' cannot start:\n  - " + "\n  - ".join(missing))
     return HwBackend(config, **options)
+
+
+_PER_DEVICE = re.compile(r"^(?P<bus>.*?): ID (?P<id>\d+): (?P<what>.*)$")
+
+
+def grouped(problems: list[str]) -> list[str]:
+    """Start-up problems with the devices that share one named together, in order: "BEAR bus P: ID(s) 2, 3, 4:
+    write failed: ..." for what would be a line per device (a vanished port fails every device behind it)."""
+    out: dict[tuple[str, str], list[str]] = {}
+    for problem in problems:
+        match = _PER_DEVICE.match(problem)
+        key = (match["bus"], match["what"]) if match else (problem, "")
+        out.setdefault(key, []).extend([match["id"]] if match else [])
+    return [f"{bus}: ID{'s' if len(ids) > 1 else ''} {', '.join(ids)}: {what}" if ids else bus
+            for (bus, what), ids in out.items()]
 
 
 # -- the backend ----------------------------------------------------------------------------------------------
@@ -152,7 +168,7 @@ class HwBackend(Backend):
         if problems:
             self._close_all()
             self._restore_switch_interval()
-            raise BackendError("hw backend: start-up failed:\n  - " + "\n  - ".join(problems))
+            raise BackendError("hw backend: start-up failed: " + "; ".join(grouped(problems)))
         # Levels itself on the first sample (the robot is still after the IMU check).
         self._attitude = MahonyAttitude(FIRMWARE_GRAVITY)
         self.witness.start()  # like the threads below, before the loop asks for real-time scheduling

@@ -204,3 +204,34 @@ def test_devices_that_vanish_mid_run_end_in_one_line_with_the_bus_exit_code(tmp_
     data = json.loads(stats.read_text())
     assert data["exit_code"] == ExitCode.BUS_FAULT and data["fault_class"] == "bus" and data["ticks"] > 0
     assert "\n" not in data["stop_cause"]
+
+
+@pytest.mark.parametrize("during", ["dynamixel 11 bus watchdog", "bear 1 watchdog_timeout"])
+def test_devices_that_vanish_during_start_up_end_in_one_line_with_the_bus_exit_code(during, tmp_path):
+    """The emulator killed while bruce-run configures the devices (the arms' watchdog written, or the legs' limits
+    and gains being written): exit code 4 (bus), one line naming every bus and the devices it failed for, the stats
+    written, nothing moved."""
+    from bruce_hw.emulator_process import EmulatorProcess
+
+    emulator = EmulatorProcess("--realtime", "--lockstep")
+    stats = tmp_path / "stats.json"
+    try:
+        proc = subprocess.Popen(emulator.bruce_run_argv(5.0, stats, overrides=WALL_CLOCK_SLACK),
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        emulator.wait_event(during, timeout_s=60)
+        emulator.proc.kill()
+        out, err = proc.communicate(timeout=60)
+    finally:
+        emulator.close()
+    assert proc.returncode == ExitCode.BUS_FAULT, out + err
+    assert "Traceback" not in out + err, out + err
+    data = json.loads(stats.read_text())
+    assert data["exit_code"] == ExitCode.BUS_FAULT and data["fault_class"] == "bus" and data["ticks"] == 0
+    cause = data["error"]
+    assert "\n" not in cause and cause.startswith("BackendError: hw backend: start-up failed: "), cause
+    parts = cause.removeprefix("BackendError: hw backend: start-up failed: ").split("; ")
+    # an item per bus and problem: the BEARs behind a vanished port that failed alike named together, not one by one
+    bear = [p for p in parts if p.startswith("BEAR bus")]
+    assert 1 <= len(bear) <= 2 and sum(p.startswith("sense board") for p in parts) == 1, parts
+    assert during.startswith("dynamixel") or any(": IDs " in p for p in bear), parts
+
