@@ -12,7 +12,8 @@ Cases: standing (the policy at a zero command), walking at 0.4 m/s and at -0.5 m
 seeded random time in [--start, --start + 1) s, after the walk has settled. A run falls when the base drops
 (the mock's fall rule, `runtime.falls`). Per case and k: the runs that fell of the phases tried.
 
-The result: the shortest k at which any case fell, and the bound set below it with a margin (docs/safety.md).
+The result: the shortest k at which any case fell, and the bound set below it with a margin
+(docs/results/safety_held_torque.md).
 Each finished run is appended to OUT/held_torque.jsonl; a second call with the same OUT skips those (resume).
 
     python bench/bench_held_torque.py --out /tmp/held [--phases 6] [--jobs 2]

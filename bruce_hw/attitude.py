@@ -20,7 +20,8 @@ from bruce_hw.types import GRAVITY
 
 # rad/s of correction per rad of tilt error: a ~3 s time constant, long next to a step (0.1-0.3 s), so the
 # horizontal accelerations of walking and pushes (which |a| barely shows) average out, short next to the
-# drift of a gyro bias (minutes); a shorter one lets walking's sway leak into the roll estimate (docs/walking.md).
+# drift of a gyro bias (minutes); a shorter one lets walking's sway leak into the roll estimate
+# (docs/results/walking.md).
 ATTITUDE_GAIN = 0.3
 # 1/s^2, integral of the same error into the gyro bias: poles at -0.04 and -0.26 1/s with the gain above, so a
 # bias is learned in ~30 s without overshoot, and the gait's periodic tilt error does not wind it up. A heading

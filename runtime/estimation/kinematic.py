@@ -39,7 +39,7 @@ ODOMETRY_STD = 0.1
 # the tilt's residual error (0.1 deg ~ 0.017 m/s^2), ~0.02 m/s^2; the sum is smallest near tau = 140 ms, q = 0.0005
 # (one foot on the ground: 140 ms, both: 100 ms). The odometry's errors are not white either (a landing's tail, a
 # stance foot creeping, a sole compressing: tens of ms each), and tau averages them. Other values tried:
-# docs/walking.md.
+# docs/results/walking.md.
 VELOCITY_RANDOM_WALK = 0.0005
 # A sphere whose switch has just closed is still moving: the foot lands with some speed, compresses, bounces and
 # slides before it settles. Its odometry's error, added in quadrature to ODOMETRY_STD, is taken as
@@ -56,7 +56,7 @@ RESET_VELOCITY_STD = 0.01
 # measured rate. On the robot, the ISM330DHCX's 5-sample average at 1.66 kHz (~1.2 ms of group delay) and the bulk
 # read's trip back through the FTDI latency timer (~1 ms; configs/gaps/default.yaml's sensor latency): ~2 ms. The
 # nominal mock's IMU is 1 ms old (it computes its sensors before the physics step whose time they carry), the
-# default gap's 2 ms. The walking policy is sensitive to this lag (docs/walking.md).
+# default gap's 2 ms. The walking policy is sensitive to this lag (docs/results/walking.md).
 IMU_DELAY_S = 0.002
 # -- levelling from the feet (config estimator.level_from_feet_s) -----------------------------------------------
 # While all four toe and heel spheres have been on the ground for more than LEVEL_SETTLE_TICKS, the plane through

@@ -34,7 +34,7 @@ class TeacherParams:
     step_width: float = 0.110        # m, nominal lateral distance between the ankles
     foot_centre: float = 0.0075      # m, middle of the toe/heel line ahead of the ankle
     # The swing apex, the reach and the stance stiffness are set for walking backwards, the least robust regime
-    # under action noise (docs/walking.md).
+    # under action noise (docs/results/walking.md).
     swing_apex: float = 0.042        # m, swing ankle height at mid-swing
     swing_landing: float = -0.004    # m, the swing ends this far below the ground, so the foot lands
     swing_horizontal_end: float = 0.771  # share of the swing by which the foot is over its landing point
