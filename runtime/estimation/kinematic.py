@@ -64,7 +64,7 @@ IMU_DELAY_S = 0.002
 # alone. The accelerometer's horizontal bias b then follows from f = g n + R^T a + b (a: the filter's own base
 # acceleration), low-passed with LEVEL_TIME_CONSTANT_S; every sample is used as f - b. Learned only in the first
 # `level_from_feet_s` after start-up: during walking the four switches are rarely closed together, and the few
-# double-support moments of a gapped robot's gait gave wrong values (docs/transfer.md, "The base path").
+# double-support moments of a gapped robot's gait gave wrong values (docs/transfer.md, "Levelling from the feet").
 LEVEL_SETTLE_TICKS = 3
 LEVEL_TIME_CONSTANT_S = 0.1
 LEVEL_BIAS_LIMIT = 0.5  # m/s^2: a learned bias is clipped here (an accelerometer further off is broken, not biased)

@@ -1,5 +1,5 @@
 """Gains of the transfer schemes, derived from a stated delay margin instead of chosen by hand (docs/transfer.md,
-"Gains from a stated delay margin"; the sweep behind the margin: docs/transfer_schemes_notes.md).
+"Gains from a stated delay margin"; the sweep behind the margin: docs/results/transfer_schemes.md).
 
 Each joint is an inertia I (`joint_inertia`); the loop around a scheme's feedback has a pure delay D
 (`transfer.delay_margin_s`) and must keep a phase margin phi (`transfer.phase_margin_deg`) at crossover.

@@ -6,7 +6,7 @@ torques through its own safety stage (the simulator's went through one). Every r
 to the robot's state and its controller takes the robot's target and action memory; between resyncs it rolls on by
 itself, in phase (the gait clock is a function of the command history). Without a gap the twin reproduces the robot;
 with one, the posture offset between them over seconds is what no prediction over a few ticks sees
-(docs/transfer.md, "The twin on the robot").
+(docs/transfer.md, "The schemes" and "Running a scheme on the robot").
 
 Two ways to resynchronise, one per kind of run:
 

@@ -4,7 +4,7 @@
 no new falls on the bar profile, `none`, each one-factor profile that ran, and the latency tolerated in the sweep.
 `recommended` names the mode that passes every bar it has, tracking and circle included, with the best tracking;
 never direct, Eq. 9 (the paper's row) or a perfect-model control (SCHEME@nominal). The bars: docs/transfer.md
-("How the rehearsal runs").
+("The acceptance and `recommended`").
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ seed; the sweeps vary the actuator latency and the Eq. 9 gains. Runs are scored 
 start-up transient and up to a fall (`run_metrics`). Output: DIR/transfer.json (with the acceptance of
 `training.evaluation.transfer_acceptance`), DIR/transfer.md and figures; each run is cached under DIR/runs
 (`training.evaluation.transfer_cache`), so an interrupted suite resumes. Experiments, metrics and the output's
-layout: docs/transfer.md ("How the rehearsal runs").
+layout: docs/transfer.md ("The rehearsal").
 """
 
 from __future__ import annotations
