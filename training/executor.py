@@ -1,7 +1,9 @@
 """Where independent runs execute: in this process, a local process pool, or a Ray cluster (`--executor`).
 
-Every command that runs many independent jobs (`bruce-eval transfer` and `walking`, `bruce-collect --seeds`) hands
-them to an `Executor` as (function, arguments) calls and gets each result back as it finishes, in any order:
+Every command that runs many independent jobs (`bruce-eval transfer`, `walking` and `policies`, `bruce-collect
+--seeds`) hands them to an `Executor` as (function, arguments) calls and gets each result back as it finishes, in any
+order (PPO's environment shards, which live as long as the training, are Ray actors of the same job:
+training/rl/ray_shards.py):
 
 - `local` (default): `jobs` worker processes of this machine (`concurrent.futures.ProcessPoolExecutor`), or this
   process when `jobs` is 1.
