@@ -27,6 +27,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from bruce_hw.config import DEFAULT_CONFIG, load_config, resolve_config_path
@@ -86,7 +87,7 @@ def round_trip(executor, shards: int) -> float:
     config = load_training_config(overrides=[f"env.num_envs={shards}", f"env.shards={shards}", "env.nthread=0"])
     env = make_env(load_config(), config, executor)
     try:
-        actions = torch.zeros(shards, env.num_actions).double().numpy() + env.robot.standing_pose
+        actions = np.tile(env.robot.standing_pose, (shards, 1))
         for _ in range(5):
             env.step(actions)
         start = time.perf_counter()

@@ -40,7 +40,7 @@ from runtime.observers import FallStop, TickObserver, TickView
 from runtime.recorder import file_sha256, portable_path
 from runtime.run import run_session
 from training.dataset import Dataset, DatasetError, config_hash, save_dataset
-from training.executor import Executor, ExecutorError, add_executor_arguments, make_executor
+from training.executor import Executor, ExecutorError, add_executor_arguments, job_files, make_executor
 
 SAMPLE_BOX = {"vx": (-0.5, 1.0), "vy": (-0.5, 0.5), "wz": (-0.5, 0.5)}   # the paper's §IV-B command box
 # What the committed policy supports: the ranges it was distilled on (training.distill.DistillSettings; the test
@@ -261,8 +261,8 @@ def merge(parts: list[Dataset], command_line: str | None = None) -> Dataset:
 
 def collect_seeds(config: RobotConfig, settings: CollectSettings, seeds: list[int], executor: Executor,
                   policy: Path | None = None, command_line: str | None = None, progress: bool = False) -> Dataset:
-    """`settings.seconds` of samples per seed, each seed a run on `executor` (made with `shipped_files`), merged
-    in the order of `seeds`."""
+    """`settings.seconds` of samples per seed, each seed a run on `executor` (shipping `job_files(config.path,
+    files=[policy])`), merged in the order of `seeds`."""
     calls = [(executor.where(config.path), dataclasses.replace(settings, seed=seed),
               executor.where(policy) if policy else None) for seed in seeds]
     parts: list[Dataset | None] = [None] * len(calls)
@@ -278,11 +278,6 @@ def collect_seeds(config: RobotConfig, settings: CollectSettings, seeds: list[in
     merged.metadata["config"] = portable_path(config.path)  # named as here, not as a worker read it
     merged.metadata["policy"] = str(policy or config.models.policy)
     return merged
-
-
-def shipped_files(config: RobotConfig, policy: Path | None) -> list[Path]:
-    """What a seed's collection reads: the robot config's folder and the policy."""
-    return [config.path.parent, *([policy] if policy else [])]
 
 
 def _episode_commands(rng: np.random.Generator, seconds: float, warmup_s: float, settings: CollectSettings
@@ -346,7 +341,8 @@ def main(argv: list[str] | None = None) -> int:
                               command_line=command_line)
         else:
             seeds = _seeds(args.seeds)
-            with make_executor(args, args.jobs, ship=shipped_files(config, args.policy)) as executor:
+            ship = job_files(config.path, files=[args.policy] if args.policy else [])
+            with make_executor(args, args.jobs, ship=ship) as executor:
                 dataset = collect_seeds(config, settings, seeds, executor, policy=args.policy,
                                         command_line=command_line, progress=not args.no_progress)
         path = save_dataset(args.out, dataset)

@@ -63,6 +63,11 @@ class Executor(ABC):
             shipped = os.path.relpath(shipped, os.path.dirname(config))
         return f"{key}={shipped}"
 
+    def shipped_config(self, config: str | Path, overrides: Iterable[str] = ()) -> tuple[str, list[str]]:
+        """A robot config and its overrides as a worker reads them (`where`, `override`)."""
+        where = self.where(config)
+        return where, [self.override(item, where) for item in overrides]
+
     @abstractmethod
     def map(self, fn: Callable, calls: Iterable[tuple]) -> Iterator[tuple[int, Any]]:
         ...
@@ -112,8 +117,8 @@ class RayExecutor(Executor):
         self._ray = ray
         self._staging = Path(tempfile.mkdtemp(prefix="bruce-job-"))
         self._shipped: dict[Path, str] = {}
-        for path in ship:
-            self._ship(Path(path))
+        for path in sorted(Path(p).resolve() for p in ship):  # the same job, whatever order they were named in
+            self._ship(path)
         # The files go with the job (Ray ships a local directory only in `ray.init`'s runtime_env), so this executor
         # connects the process itself.
         if ray.is_initialized():
@@ -184,7 +189,15 @@ def _reachable(address: str | None, timeout_s: float = 5.0) -> None:
         raise ConnectionError(f"no Ray head answers there: {exc}") from None
 
 
-def add_executor_arguments(p: argparse.ArgumentParser, jobs_default: int | None = None) -> None:
+def job_files(config: str | Path, overrides: Iterable[str] = (), files: Iterable[str | Path] = ()) -> set[Path]:
+    """What a run reads from disk, to ship with the job: the robot config's folder, every file an override
+    KEY=VALUE names, and `files`."""
+    named = (item.partition("=")[2] for item in overrides)
+    return {Path(config).resolve().parent, *(Path(v).resolve() for v in named if v and Path(v).is_file()),
+            *(Path(f).resolve() for f in files)}
+
+
+def add_executor_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--executor", choices=EXECUTORS, default="local",
                    help="where the runs execute: local (this machine, --jobs processes) or ray (a Ray cluster: "
                         "docs/cluster.md) (default: %(default)s)")

@@ -201,9 +201,7 @@ class TwinScheme(TransferScheme):
     def _clear(self) -> None:
         self.q_hat = self.qd_hat = self.one_step = None
         self.u = np.zeros_like(self.u)
-        integral = self.runner.integral
-        banded = integral.dead_band.any() or integral.resolution_counts > 0
-        self.engaged = np.zeros_like(self.u) if banded else np.ones_like(self.u)
+        self.engaged = np.zeros_like(self.u) if self.runner.integral.banded else np.ones_like(self.u)
         self.command_offset = np.zeros(3)
         self._command: np.ndarray | None = None  # the command in force, as the twin gets it
         self._tick = 0

@@ -87,6 +87,11 @@ class TwinIntegral:
         self.resolution = np.full_like(self.gain, np.inf)  # the smallest change of each measured angle seen (rad)
         self._q_last: np.ndarray | None = None
 
+    @property
+    def banded(self) -> bool:
+        """Whether there is a dead band: the inner scheme's correction then waits for the integral to pass it."""
+        return bool(self.dead_band.any()) or self.resolution_counts > 0
+
     def output(self) -> TwinOutput:
         """The integral as the control thread uses it (new arrays: the integral never writes into them)."""
         band = self.band
@@ -136,8 +141,7 @@ class InlineTwinRunner:
     def _zero(self) -> TwinOutput:
         """Before the twin's first answer: no torque, no command correction, the inner scheme not engaged."""
         zeros = np.zeros_like(self.integral.gain)
-        banded = self.integral.dead_band.any() or self.integral.resolution_counts > 0
-        return TwinOutput(zeros, np.zeros(3), zeros if banded else np.ones_like(zeros))
+        return TwinOutput(zeros, np.zeros(3), zeros if self.integral.banded else np.ones_like(zeros))
 
     def reset(self) -> None:
         self.integral.reset()

@@ -51,7 +51,7 @@ from training.evaluation.transfer_runs import (
     run_one,
     scheme_of,
 )
-from training.executor import Executor, ExecutorError, LocalExecutor, add_executor_arguments, make_executor
+from training.executor import Executor, ExecutorError, add_executor_arguments, job_files, make_executor
 
 DEFAULT_SECONDS = 20.0
 DEFAULT_LATENCIES_MS = (0.0, 2.0, 4.0, 6.0, 8.0, 10.0)
@@ -196,30 +196,22 @@ def _profile_label(spec: RunSpec) -> str:
 
 
 def shipped_files(specs: list[RunSpec]) -> list[Path]:
-    """What the runs of `specs` read from disk: each robot config's folder and every file an override names."""
-    files = {resolve_config_path(spec.config or DEFAULT_CONFIG).parent for spec in specs}
-    files |= {Path(value).resolve() for spec in specs for value in _override_values(spec) if Path(value).is_file()}
-    return sorted(files)
-
-
-def _override_values(spec: RunSpec) -> list[str]:
-    return [item.partition("=")[2] for item in spec.overrides]
+    """What the runs of `specs` read from disk (`job_files` of each)."""
+    return sorted(set().union(*(job_files(resolve_config_path(spec.config or DEFAULT_CONFIG), spec.overrides)
+                                for spec in specs)))
 
 
 def _as_shipped(spec: RunSpec, executor: Executor) -> RunSpec:
     """`spec` with its files named as the executor's workers read them (the same files, shipped)."""
-    config = executor.where(resolve_config_path(spec.config or DEFAULT_CONFIG))
-    return dataclasses.replace(spec, config=config,
-                               overrides=tuple(executor.override(item, config) for item in spec.overrides))
+    config, overrides = executor.shipped_config(resolve_config_path(spec.config or DEFAULT_CONFIG), spec.overrides)
+    return dataclasses.replace(spec, config=config, overrides=tuple(overrides))
 
 
-def execute(specs: list[RunSpec], out: Path, executor: Executor | int, keep: list[RunSpec] = (),
+def execute(specs: list[RunSpec], out: Path, executor: Executor, keep: list[RunSpec] = (),
             progress: bool = True) -> RunResults:
-    """Run every distinct spec once (the nominal references first) on `executor` (or that many local processes),
-    each run's metrics (and the records kept: nominal runs and `keep`) cached under OUT/runs as it finishes
-    (`transfer_cache`); what the cache already holds is not run again."""
-    if isinstance(executor, int):
-        executor = LocalExecutor(executor)
+    """Run every distinct spec once (the nominal references first) on `executor`, each run's metrics (and the
+    records kept: nominal runs and `keep`) cached under OUT/runs as it finishes (`transfer_cache`); what the cache
+    already holds is not run again."""
     cache = RunCache(Path(out) / "runs")
     unique: dict[str, RunSpec] = {}
     for spec in specs:

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config, resolve_config_path
-from training.executor import ExecutorError, add_executor_arguments, make_executor
+from training.executor import ExecutorError, add_executor_arguments, job_files, make_executor
 
 # vx in {-0.5, -0.3, 0, 0.4, 0.8} x yaw rate in {-0.5, 0, 0.5}, and vy +-0.2 standing: 17 points.
 GRID = [(vx, 0.0, wz) for vx in (-0.5, -0.3, 0.0, 0.4, 0.8) for wz in (-0.5, 0.0, 0.5)] + \
@@ -63,9 +63,8 @@ def run_walking(args: argparse.Namespace) -> int:
         return 2
     config_path = resolve_config_path(args.config)
     try:
-        with make_executor(args, args.jobs, ship=[config_path.parent, *([args.policy] if args.policy else [])]) as ex:
-            config = ex.where(config_path)
-            shipped = [ex.override(item, config) for item in overrides]
+        with make_executor(args, args.jobs, ship=job_files(config_path, overrides)) as ex:
+            config, shipped = ex.shipped_config(config_path, overrides)
             calls = [(config, shipped, args.controller, cmd, args.seconds) for cmd in GRID]
             points: list[dict] = [{}] * len(calls)
             for index, point in ex.map(walk_point, calls):

@@ -79,8 +79,9 @@ class ShardedWalkEnv:
         self.dt = 1.0 / robot.policy_hz
         self.max_episode_length = round(config.episode_s * robot.policy_hz)
         self.episode_length = np.zeros(self.num_envs, dtype=int)  # a mirror: the shards hold their own
-        self.obs = _joined(shards.observations())
-        self._split = np.cumsum([len(o["policy"]) for o in shards.observations()])[:-1]
+        parts = shards.observations()
+        self.obs = _joined(parts)
+        self._split = np.cumsum([len(o["policy"]) for o in parts])[:-1]
 
     def get_observations(self) -> dict[str, np.ndarray]:
         return self.obs
