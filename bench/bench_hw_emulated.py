@@ -18,6 +18,14 @@
     python bench/bench_hw_emulated.py [--seconds 30] [--cmd 0.4,0,0] [--transfer shadow_twin] [--runs 5] \
         [--fault-trials 3] [--emulator-args "--bear-delay 0.0007 --bear-jitter 0.0015"] [--set KEY=VALUE ...]
 
+3. The series (issue #34's acceptance): `--conditions clean,delay,drop,corrupt` runs the stand and the walk under
+   each named link condition (CONDITIONS: a fresh emulator each) and the fault trials under each; `--busy-core`
+   with another process keeping one core busy at nice 19 the whole time. It ends with the tally: runs completed of
+   all, and for each run that ended, its cause beside the longest machine stall the witness saw in the 60 ms before.
+
+    python bench/bench_hw_emulated.py --seconds 30 --cmd 0.4,0,0 --runs 3 --conditions clean,delay,drop,corrupt \
+        --fault-trials 5 [--busy-core]
+
 Each run also reports the host stalls it counted itself (bruce_hw.host_witness), its late ticks split into those
 with the host stalled and those of the loop's own making, and the tick's CPU time as a share of the period (the
 loop's own cost, which a VM that does not run the thread does not advance).
@@ -48,6 +56,12 @@ from runtime.run import run_session
 
 BULK_RATE_GOAL_HZ = 990.0
 TRIP_LOOKBACK_S = 0.06  # a machine stall this close before a trip explains it (the data-age bound is 8 ms)
+CONDITIONS = {  # the link conditions of the series: bruce-emulate options
+    "clean": "",
+    "delay": "--bear-delay 0.0007 --bear-jitter 0.0015",   # 0.7 ms + U(0, 1.5 ms) on every BEAR answer
+    "drop": "--bear-drop 0.01",                            # 1 % of BEAR replies never sent
+    "corrupt": "--bear-corrupt 0.01",                      # 1 % of BEAR replies with a bad checksum
+}
 FAULTS = (("BEAR IDs 3, 4 silent", "silence bear 3 4", "answer bear 3 4", 0.010),
           ("E-stop", "estop on", "estop off", 0.002),
           ("IMU stream stopped", "imu stop", "imu start", 0.010),
@@ -185,8 +199,44 @@ def main() -> None:
                         help="bruce-emulate --realtime (SCHED_FIFO 40) or at normal priority")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="bruce-run config overrides")
+    parser.add_argument("--conditions", default=None, metavar="NAME,...",
+                        help=f"run the stand and walk under each of these link conditions ({', '.join(CONDITIONS)})"
+                             "; --emulator-args adds to each")
+    parser.add_argument("--busy-core", action="store_true",
+                        help="keep one core busy at nice 19 meanwhile (another job on the robot computer)")
     args = parser.parse_args()
-    extra = shlex.split(args.emulator_args)
+    names = args.conditions.split(",") if args.conditions else [None]
+    unknown = [n for n in names if n is not None and n not in CONDITIONS]
+    if unknown:
+        sys.exit(f"--conditions: unknown {', '.join(unknown)} (expected some of {', '.join(CONDITIONS)})")
+    busy = (subprocess.Popen(["nice", "-n", "19", sys.executable, "-c", "while True: pass"])
+            if args.busy_core else None)
+    tally: list[tuple[str, dict | None]] = []
+    try:
+        for name in names:
+            condition = CONDITIONS.get(name, "")
+            if name is not None:
+                print(f"== condition {name}: {condition or 'no delay, no loss'}"
+                      f"{'; one core kept busy' if busy else ''}")
+            series(args, f"{condition} {args.emulator_args}", name or "runs", tally, args.fault_trials)
+    finally:
+        if busy is not None:
+            busy.kill()
+            busy.wait()
+    ended = [(label, stats) for label, stats in tally if stats is not None]
+    print(f"series: {len(tally) - len(ended)} of {len(tally)} runs completed without a trip"
+          f"{' (one core kept busy)' if busy else ''}")
+    for label, stats in ended:
+        before = stats["witness"]["before_trip"]
+        longest = max((ms for _, ms in before), default=0.0)
+        print(f"   {label} ended at {stats['loop_s']:.1f} s: {stats['stop_cause']}; the witness's longest machine "
+              f"stall in the 60 ms before: {longest:.1f} ms")
+
+
+def series(args, emulator_options: str, label: str, tally: list, fault_trials: int) -> None:
+    """The runs (stand, and walk with --cmd) under one emulator, then the fault trials; each run's stats (None: it
+    completed) go to `tally`."""
+    extra = shlex.split(emulator_options)
     no_delay = not any(a.endswith(("-delay", "-jitter")) for a in extra)
     emulator_args = (["--realtime"] if args.emulator_priority == "realtime" else []) + extra
     print(f"bruce-emulate {' '.join(emulator_args)}; bruce-run --set {' '.join(args.overrides) or '(defaults)'}")
@@ -199,13 +249,15 @@ def main() -> None:
                 if name != "stand" and not cmd:
                     continue
                 emulator.send("place")
-                completed += report(f"{name} #{k + 1}", session(emulator, args.seconds, cmd,
-                                                                 args.overrides + extra_set), emulator, no_delay)
+                stats = session(emulator, args.seconds, cmd, args.overrides + extra_set)
+                ok = report(f"{name} #{k + 1}", stats, emulator, no_delay)
+                completed += ok
+                tally.append((f"{label}: {name} #{k + 1}", None if ok else stats))
                 runs += 1
         print(f"   runs completed without a trip: {completed} of {runs}")
-        if args.fault_trials > 0:
+        if fault_trials > 0:
             emulator.send("place")
-            faults(emulator, args.fault_trials, args.overrides)
+            faults(emulator, fault_trials, args.overrides)
 
 
 if __name__ == "__main__":
