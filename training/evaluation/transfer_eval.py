@@ -20,17 +20,13 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bruce_hw.config import (
-    DEFAULT_CONFIG,
-    REFERENCE_MODELS,
-    TRANSFER_SCHEMES,
-    ConfigError,
-    load_config,
-    resolve_config_path,
-)
+from bruce_hw.config import DEFAULT_CONFIG, ConfigError, resolve_config_path
 from bruce_hw.reality_gap import GapError, RealityGap, latency_ticks, load_gap
 from runtime.observers import TRACKING_SKIP_S
 from runtime.policy_spec import policy_spec_for
+from runtime.robot_config import load_config
+from runtime.transfer.reference_models import REFERENCE_MODELS
+from runtime.transfer.registry import scheme_names
 from training.evaluation.report import json_safe
 from training.evaluation.transfer_acceptance import (
     ONE_FACTOR_PROFILES,
@@ -399,9 +395,9 @@ def settings_from_args(args) -> TransferSettings:
         schemes = tuple(m.strip() for m in args.schemes.split(",") if m.strip())
         for mode in schemes:
             scheme, model = scheme_of(mode)
-            if scheme not in TRANSFER_SCHEMES or model not in (None, *REFERENCE_MODELS):
+            if scheme not in scheme_names() or model not in (None, *REFERENCE_MODELS):
                 raise TransferError(f"--schemes: {mode!r}: expected SCHEME or SCHEME@MODEL with SCHEME one of "
-                                    f"{', '.join(TRANSFER_SCHEMES)} and MODEL one of {', '.join(REFERENCE_MODELS)}")
+                                    f"{', '.join(scheme_names())} and MODEL one of {', '.join(REFERENCE_MODELS)}")
     overrides = tuple(getattr(args, "overrides", None) or ())
     if overrides:
         overridden = load_config(args.config or DEFAULT_CONFIG, list(overrides))  # a bad --set fails here
