@@ -73,7 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     standing.configure()
     command = np.array(COMMAND)
     names = scheme_names(aliases=False)  # `pinn` is eq9
-    modes = args.schemes.split(",") if args.schemes else [*names, *(f"{s}@nominal" for s in names if s != "direct")]
+    modes = args.schemes.split(",") if args.schemes else [*names, *(f"{s}@nominal" for s in names
+                                                                     if scheme_entry(s).uses_reference)]
     schemes = {}
     for mode in modes:
         name, _, model = mode.partition("@")

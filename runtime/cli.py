@@ -78,7 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     from runtime.controllers import CONTROLLERS
     from runtime.estimation.estimators import ESTIMATORS
     from runtime.telemetry import SINK_HELP
-    from runtime.transfer.registry import scheme_names
+    from runtime.transfer.registry import scheme_help
 
     p = argparse.ArgumentParser(prog="bruce-run", description=__doc__, epilog=EXIT_CODES_HELP)
     p.add_argument("--backend", choices=BACKENDS, default="mock",
@@ -93,11 +93,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--realtime", action="store_true",
                    help="pace the loop to the wall clock (default for the mock: as fast as possible, but paced "
                         "with --rerun web)")
-    p.add_argument("--transfer", choices=scheme_names(), default=None,
-                   help="direct: Eq. 8 torques alone; pinn or eq9: the paper's Eq. 9, tracking the PINN's prediction; "
-                        "shadow: a PD towards the reference model's shadow of the simulator; observer: a slow "
-                        "integrator of the model's one-step residual (runtime/transfer/; the model: "
-                        "transfer.reference_model) (default: transfer.scheme in the config, shipped direct)")
+    choices, schemes = scheme_help()
+    p.add_argument("--transfer", choices=choices, default=None,
+                   help=f"{schemes} (runtime/transfer/; the model: transfer.reference_model) (default: "
+                        "transfer.scheme in the config, shipped direct)")
     p.add_argument("--controller", choices=CONTROLLERS, default="policy",
                    help="policy: the ONNX walking policy (--policy); teacher: the model-based walking controller; "
                         "standing: the standing controller (default: %(default)s)")

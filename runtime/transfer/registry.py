@@ -115,3 +115,14 @@ def scheme_sections() -> Mapping[str, type]:
     """transfer.<section> -> its settings class, for every registered scheme that has settings."""
     return {entry.section: entry.settings for entry in _SCHEMES.values() if entry.settings is not None}
 
+
+def listed_schemes(alias: str = " = ") -> str:
+    """The schemes for a help text, an alias beside its scheme: "direct, pinn = eq9, shadow, ..."."""
+    return ", ".join(alias.join((*_SCHEMES[name].aliases, name)) for name in scheme_names(aliases=False))
+
+
+def scheme_help() -> tuple[tuple[str, ...], str]:
+    """bruce-run --transfer's choices and help: "direct: Eq. 8 torques alone; pinn or eq9: the paper's Eq. 9, ..."."""
+    parts = [f"{' or '.join((*_SCHEMES[name].aliases, name))}: {_SCHEMES[name].help}"
+             for name in scheme_names(aliases=False)]
+    return scheme_names(), "; ".join(parts)

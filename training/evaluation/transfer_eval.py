@@ -26,7 +26,7 @@ from runtime.observers import TRACKING_SKIP_S
 from runtime.policy_spec import policy_spec_for
 from runtime.robot_config import load_config
 from runtime.transfer.reference_models import REFERENCE_MODELS
-from runtime.transfer.registry import scheme_names
+from runtime.transfer.registry import listed_schemes, scheme_names
 from training.evaluation.report import json_safe
 from training.evaluation.transfer_acceptance import (
     ONE_FACTOR_PROFILES,
@@ -41,6 +41,7 @@ from training.evaluation.transfer_runs import (
     EXPERIMENTS,
     LOOKAHEAD_MODE,
     MODES,
+    PERFECT_MODEL_SUFFIX,
     Experiment,
     RunRecord,
     RunSpec,
@@ -339,9 +340,9 @@ def add_parser(commands) -> argparse.ArgumentParser:
                    help="the look-ahead variant's extra PINN ticks: N, 'auto' (the gap's actuator + sensor latency) "
                         "or 'off' (default: %(default)s)")
     p.add_argument("--schemes", default=None,
-                   help="comma-separated modes to compare with direct transfer: transfer schemes (direct, pinn = eq9, "
-                        "shadow, observer) and SCHEME@nominal for a scheme's perfect-model control (default: pinn and "
-                        "its look-ahead variant)")
+                   help=f"comma-separated modes to compare with direct transfer: transfer schemes ({listed_schemes()}) "
+                        f"and SCHEME{PERFECT_MODEL_SUFFIX} for a scheme's perfect-model control (default: pinn and its "
+                        "look-ahead variant)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="robot config override for every run, e.g. transfer.observer.time_constant_s=0.5 (repeatable)")
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
