@@ -21,10 +21,11 @@ import time
 
 import numpy as np
 
-from bruce_hw.config import TRANSFER_SCHEMES, load_config
+from bruce_hw.config import load_config
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.reality_gap import load_gap
-from runtime.transfer.schemes import EQ9_ALIASES, build_scheme
+from runtime.transfer.registry import scheme_entry, scheme_names
+from runtime.transfer.schemes import build_scheme
 
 RATIO_GOAL = 2.0
 COMMAND = (0.4, 0.0, 0.0)
@@ -71,8 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     standing = MujocoBackend(config)
     standing.configure()
     command = np.array(COMMAND)
-    names = [s for s in TRANSFER_SCHEMES if s != "pinn"]
-    modes = args.schemes.split(",") if args.schemes else names + [f"{s}@nominal" for s in names if s != "direct"]
+    names = scheme_names(aliases=False)  # `pinn` is eq9
+    modes = args.schemes.split(",") if args.schemes else [*names, *(f"{s}@nominal" for s in names
+                                                                     if scheme_entry(s).uses_reference)]
     schemes = {}
     for mode in modes:
         name, _, model = mode.partition("@")
@@ -94,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     def p(values, pct):
         return float(np.percentile(np.concatenate(values), pct)) / 1e3
 
-    eq9 = next((m for m in schemes if m in EQ9_ALIASES), None)
+    eq9 = next((m for m in schemes if m in ("eq9", *scheme_entry("eq9").aliases)), None)
     eq9_p50 = p(times[eq9][0], 50) if eq9 else None
     print(f"transfer scheme tick cost, {len(q)} ticks x {args.blocks} blocks of a 0.4 m/s walk on the default gap "
           "(µs; model work = predict, the loop's pinn section; mixing = torque)")

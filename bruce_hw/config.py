@@ -134,7 +134,7 @@ class ModelsConfig:
     # actuators' latency: a torque sent now acts that many ticks later.
     pinn_lookahead_ticks: int = 0
     # The PINN's mean one-step velocity error on the simulator itself (predicted minus simulated qd, rad/s, per
-    # joint; None: not measured), which the residual observer takes off (runtime/transfer/schemes.py).
+    # joint; None: not measured), which the residual observer takes off (runtime/transfer/observer.py).
     pinn_residual_bias: np.ndarray | None = None
     # The policy's observation/action spec (runtime/policy_spec.py); None: its sidecar's, else Table I.
     policy_spec: Path | None = None
@@ -147,34 +147,6 @@ class EstimatorConfig:
     # > 0: for this long after the estimator starts, while both feet are flat, the accelerometer's horizontal bias
     # is learned so that gravity points along the feet plane's normal ("level is where the feet are"); 0: off.
     level_from_feet_s: float = 0.0
-
-
-TRANSFER_SCHEMES = ("direct", "pinn", "eq9", "shadow", "observer", "twin", "shadow_twin")  # runtime/transfer/schemes.py
-REFERENCE_MODELS = ("pinn", "nominal")                             # runtime/transfer/reference_models.py
-
-
-@dataclass(frozen=True, slots=True)
-class TransferConfig:
-    """The transfer stage (`transfer` section, optional): the scheme `bruce-run` uses without --transfer, its
-    reference model and settings, and the gap monitor's (runtime/transfer/: schemes.py, gap_monitor.py)."""
-
-    scheme: str = "direct"
-    reference_model: str = "pinn"
-    delay_margin_s: float = 0.009        # the loop delay the feedback schemes are designed to tolerate ...
-    phase_margin_deg: float = 45.0       # ... with this phase margin left (runtime/transfer/gains.py)
-    shadow_resync_ticks: int = 10
-    observer_time_constant_s: float = 0.2
-    observer_clip: float = 0.25          # share of joints.torque_limits
-    twin_resync_s: float = 2.0           # the nominal twin rolls this long from the robot's state before a resync
-    twin_time_constant_s: float = 2.0    # the twin integral's time constant: gain Kp_eq8 / T per s of offset
-    twin_clip: float = 0.25              # share of joints.torque_limits
-    twin_disturbance_rad: float = 0.3    # a larger offset from the twin is a push, not a gap: resync, not integrated
-    twin_lag_ticks: int = 10             # the integral acts on the twin's offset this many ticks old (its own thread)
-    twin_command_time_constant_s: float = 0.0  # > 0: the twin's command correction settles this slowly; 0: off
-    twin_dead_band_rad: float = 0.0      # the integral acts past Eq. 8 Kp x this, the shadow's share fades in past it
-    twin_resolution_counts: float = 0.0  # ... and past this many of the joint's encoder steps seen (0: off)
-    gap_monitor_window_s: float = 0.1
-    gap_monitor_warn_rms: float = 2.0    # rad/s
 
 
 @dataclass(frozen=True, slots=True)
@@ -199,8 +171,7 @@ class RobotConfig:
     safety: SafetyConfig
     models: ModelsConfig
     buses: Buses
-    raw: dict
-    transfer: TransferConfig = TransferConfig()
+    raw: dict  # the YAML tree as read; the runtime reads its own `transfer` section from it (runtime/transfer/stage.py)
     estimator: EstimatorConfig = EstimatorConfig()
 
     @property
@@ -272,24 +243,7 @@ BOUNDS: dict[str, Bound] = {
     "policy.gait_period_s[*][1]": Bound(0.1, 2.0, "s", "a step cycle", low_open=True),
     "pinn.lookahead_ticks": Bound(0, 50, "ticks", "50 ms of actuator latency", integer=True),
     "pinn.residual_bias.*": Bound(-1.0, 1.0, "rad/s", "the PINN's mean one-step qd error on the simulator"),
-    "transfer.delay_margin_s": Bound(0.001, 0.05, "s", "loop delay the transfer feedback must tolerate"),
-    "transfer.phase_margin_deg": Bound(10.0, 70.0, "deg", "left at that delay; a PD leads by at most 71.6 deg"),
-    "transfer.shadow.resync_ticks": Bound(1, 1000, "ticks", "shadow horizon: up to 1 s at 1 kHz", integer=True),
-    "transfer.observer.time_constant_s": Bound(0.005, 10.0, "s", "observer settling; at least the delay margin's"),
-    "transfer.observer.clip": Bound(0.0, 1.0, "", "share of joints.torque_limits", low_open=True),
-    "transfer.twin.resync_s": Bound(0.01, 10.0, "s", "twin horizon: from one policy period to a walk's length"),
-    "transfer.twin.time_constant_s": Bound(1.0, 60.0, "s",
-                                           "twin integral settling; 0.5 s fell (docs/results/transfer_schemes.md)"),
-    "transfer.twin.clip": Bound(0.0, 1.0, "", "share of joints.torque_limits", low_open=True),
-    "transfer.twin.disturbance_rad": Bound(0.01, 3.0, "rad", "offset from the twin taken as a push"),
-    "transfer.twin.lag_ticks": Bound(0, 200, "ticks", "the twin's answer may be this late: 0.2 s beside T >= 1 s",
-                                     integer=True),
-    "transfer.twin.command_time_constant_s": Bound(0.0, 60.0, "s", "command correction settling; 0: off"),
-    "transfer.twin.dead_band_rad": Bound(0.0, 0.05, "rad", "dead band as a posture offset at Eq. 8 Kp; 0: off"),
-    "transfer.twin.resolution_counts": Bound(0.0, 100.0, "", "dead band of at least this many encoder steps; 0: off"),
     "estimator.level_from_feet_s": Bound(0.0, 10.0, "s", "start-up levelling: the robot stands still that long"),
-    "transfer.gap_monitor.window_s": Bound(0.005, 10.0, "s", "RMS window of the one-step residual"),
-    "transfer.gap_monitor.warn_rms": Bound(0.0, 100.0, "rad/s", "window RMS that logs a warning", low_open=True),
     "buses.*.baud": Bound(9600, 12_000_000, "bit/s", "UART rates up to the FTDI's 12 Mbaud", integer=True),
     "buses.bear.ids[*]": Bound(0, 253, "", "BEAR IDs; 254 is broadcast", integer=True),
     "buses.bear.watchdog_s": Bound(0.005, 1.0, "s", "a lost host must end in damping"),
@@ -495,6 +449,7 @@ def _actuators(r: YamlReader, can: CanBus) -> tuple[float, float]:
     return r.number("actuators.torque_limit", bound=bound), torque_per_amp
 
 
+# `transfer` is the runtime's section (runtime/transfer/stage.py reads it from RobotConfig.raw): allowed here, unread.
 _TOP_KEYS = {"name", "mjcf", "rates", "joints", "gains", "actuators", "coupling", "arms", "safety", "policy", "pinn",
              "buses", "transfer", "estimator"}
 
@@ -568,50 +523,6 @@ def _models(r: YamlReader, joints: tuple[str, ...]) -> ModelsConfig:
                         pinn_residual_bias=r.per_joint("pinn.residual_bias", joints) if "residual_bias" in pinn
                         else None,
                         policy_spec=_model_file(r, "policy.spec") if "spec" in policy else None)
-
-
-# The transfer section's numbers are its BOUNDS entries: "transfer.NAME" is TransferConfig.NAME and
-# "transfer.SECTION.NAME" TransferConfig.SECTION_NAME.
-_TRANSFER_KEYS = tuple(key.removeprefix("transfer.") for key in BOUNDS if key.startswith("transfer."))
-_TRANSFER_SECTIONS = {section: tuple(key.split(".")[1] for key in _TRANSFER_KEYS if key.startswith(f"{section}."))
-                      for section in dict.fromkeys(key.split(".")[0] for key in _TRANSFER_KEYS if "." in key)}
-
-
-def _transfer(r: YamlReader, loop_hz: int) -> TransferConfig:
-    """The optional `transfer` section; every key in it is optional (TransferConfig's defaults)."""
-    if "transfer" not in r.data:
-        return TransferConfig()
-    node = r.mapping("transfer", {"scheme", "reference_model", *(key.split(".")[0] for key in _TRANSFER_KEYS)})
-    default = TransferConfig()
-    values = {}
-    if "scheme" in node:
-        values["scheme"] = r.choice("transfer.scheme", TRANSFER_SCHEMES)
-    if "reference_model" in node:
-        values["reference_model"] = r.choice("transfer.reference_model", REFERENCE_MODELS)
-    for name in _TRANSFER_KEYS:
-        if "." not in name and name in node:
-            values[name] = r.number(f"transfer.{name}")
-    delay = values.get("delay_margin_s", default.delay_margin_s)
-    phase = math.radians(values.get("phase_margin_deg", default.phase_margin_deg))
-    shortest = delay / (math.pi / 2 - phase)  # runtime/transfer/gains.py: the integrator's phase margin
-    narrowed = {
-        "observer.time_constant_s": bound_for("transfer.observer.time_constant_s").narrowed(
-            "at least transfer.delay_margin_s / (pi/2 - transfer.phase_margin_deg)", low=shortest),
-        "gap_monitor.window_s": bound_for("transfer.gap_monitor.window_s").narrowed(
-            "at least 5 ticks of rates.loop_hz", low=5.0 / loop_hz),
-    }
-    for section, names in _TRANSFER_SECTIONS.items():
-        if section not in node:
-            continue
-        sub = r.mapping(f"transfer.{section}", set(names))
-        for name in names:
-            if name in sub:
-                values[f"{section}_{name}"] = r.number(f"transfer.{section}.{name}",
-                                                       bound=narrowed.get(f"{section}.{name}"))
-    if "observer_time_constant_s" not in values and default.observer_time_constant_s < shortest:
-        raise r.fail("transfer.delay_margin_s", f"a margin that the default transfer.observer.time_constant_s "
-                     f"({default.observer_time_constant_s:g} s) keeps; set that key too", delay)
-    return replace(default, **values)
 
 
 def parse_config(data: Any, path: Path) -> RobotConfig:
@@ -691,7 +602,6 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
         models=_models(r, joints),
         buses=buses,
         raw=data,
-        transfer=_transfer(r, loop_hz),
         estimator=_estimator(r),
     )
 

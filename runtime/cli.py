@@ -78,7 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     from runtime.controllers import CONTROLLERS
     from runtime.estimation.estimators import ESTIMATORS
     from runtime.telemetry import SINK_HELP
-    from runtime.transfer.schemes import TRANSFERS
+    from runtime.transfer.registry import scheme_help
 
     p = argparse.ArgumentParser(prog="bruce-run", description=__doc__, epilog=EXIT_CODES_HELP)
     p.add_argument("--backend", choices=BACKENDS, default="mock",
@@ -93,11 +93,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--realtime", action="store_true",
                    help="pace the loop to the wall clock (default for the mock: as fast as possible, but paced "
                         "with --rerun web)")
-    p.add_argument("--transfer", choices=TRANSFERS, default=None,
-                   help="direct: Eq. 8 torques alone; pinn or eq9: the paper's Eq. 9, tracking the PINN's prediction; "
-                        "shadow: a PD towards the reference model's shadow of the simulator; observer: a slow "
-                        "integrator of the model's one-step residual (runtime/transfer/schemes.py; the model: "
-                        "transfer.reference_model) (default: transfer.scheme in the config, shipped direct)")
+    choices, schemes = scheme_help()
+    p.add_argument("--transfer", choices=choices, default=None,
+                   help=f"{schemes} (runtime/transfer/; the model: transfer.reference_model) (default: "
+                        "transfer.scheme in the config, shipped direct)")
     p.add_argument("--controller", choices=CONTROLLERS, default="policy",
                    help="policy: the ONNX walking policy (--policy); teacher: the model-based walking controller; "
                         "standing: the standing controller (default: %(default)s)")
@@ -159,14 +158,16 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
 
     from bruce_hw.backend import BackendError
     from bruce_hw.backends import make_backend
-    from bruce_hw.config import ConfigError, load_config
+    from bruce_hw.config import ConfigError
     from bruce_hw.reality_gap import GapError, load_gap
     from runtime.commands import CommandSchedule
     from runtime.inference import ModelError
     from runtime.policy_spec import policy_spec_for, spec_file, trained_commands
     from runtime.recorder import RecordError
+    from runtime.robot_config import load_config
     from runtime.run import RunSummary, exit_code_of, run_session, stats_path_error, write_stats
     from runtime.telemetry import TelemetryError, parse_sink
+    from runtime.transfer.stage import settings_for
 
     parser = build_parser()
     args = parser.parse_args(join_option_values(sys.argv[1:] if argv is None else list(argv)))
@@ -203,6 +204,7 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
     try:
         stop.arm()  # a signal from here on (or one that came while the modules loaded) stops start-up at once
         config = load_config(args.config, args.overrides)
+        transfer_settings = settings_for(config)
         if args.policy_spec is not None:
             config = replace(config, models=replace(config.models, policy_spec=spec_file(args.policy_spec)))
         policy_path = args.policy or config.models.policy
@@ -217,10 +219,10 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
                 given = f"--scenario {args.scenario}" if args.scenario is not None else "--cmd"
                 raise ConfigError(f"{given}: {outside}, the range the policy {policy_path} was trained on (its "
                                   "sidecar's commands): refused, since what it does there was never tried")
-        transfer = args.transfer or config.transfer.scheme
-        if args.pinn is not None and (transfer == "direct" or config.transfer.reference_model != "pinn"):
+        transfer = args.transfer or transfer_settings.scheme
+        if args.pinn is not None and (transfer == "direct" or transfer_settings.reference_model != "pinn"):
             raise ConfigError(f"--pinn {args.pinn}: transfer {transfer} on reference model "
-                              f"{config.transfer.reference_model} uses no PINN (pick one with --transfer eq9, shadow "
+                              f"{transfer_settings.reference_model} uses no PINN (pick one with --transfer eq9, shadow "
                               "or observer)")
         options = {}
         if args.gap is not None or args.gap_seed is not None:

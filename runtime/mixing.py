@@ -3,7 +3,7 @@
 Eq. 8 is the nominal low-gain PD on the policy's targets a_t. Eq. 9 adds a high-gain PD towards the PINN's
 prediction of the simulator's next joint state (q^', qd^'), so the robot tracks what the simulator would
 have done under the same tau*. `--transfer direct` sends Eq. 8 alone, `--transfer pinn` (or `eq9`) sends Eq. 9;
-the other transfer schemes (runtime/transfer/schemes.py) build on these two.
+the other transfer schemes (runtime/transfer/: shadow.py, observer.py, twin.py) build on these two.
 """
 
 from __future__ import annotations

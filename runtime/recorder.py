@@ -148,8 +148,11 @@ def describe_run(config: RobotConfig, *, backend: str, controller: str, policy: 
     """What a log records about its run, for a replay to repeat it: the config file (path, SHA-256, overrides),
     the controller and its policy file, the transfer scheme and its PINN, the estimator, the gap profile the mock
     played (with its seed) and where the commands came from."""
+    from runtime.transfer.stage import settings_for  # the transfer stage loads MuJoCo: only when a run is described
+
     policy_path = (policy or config.models.policy) if controller == "policy" else None
-    uses_pinn = transfer != "direct" and config.transfer.reference_model == "pinn"
+    reference_model = settings_for(config).reference_model if transfer != "direct" else None
+    uses_pinn = reference_model == "pinn"
     return {
         "config": {**file_record(config.path), "overrides": list(overrides), "mjcf": file_record(config.mjcf)},
         "backend": backend,
@@ -157,7 +160,7 @@ def describe_run(config: RobotConfig, *, backend: str, controller: str, policy: 
         "policy": file_record(policy_path),
         "policy_spec": file_record(config.models.policy_spec) if policy_path is not None else None,
         "transfer": transfer,
-        "reference_model": config.transfer.reference_model if transfer != "direct" else None,
+        "reference_model": reference_model,
         "pinn": file_record((pinn or config.models.pinn) if uses_pinn else None),
         "estimator": estimator or ("truth" if backend == "mock" else "kinematic"),
         "gap": None if gap is None else {"profile": str(gap.source), "seed": gap.seed},

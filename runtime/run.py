@@ -3,7 +3,7 @@
 Start-up follows the robot: configure (inactive, reads only) -> load and check the models, warm up their
 sessions -> read the measured pose -> start telemetry -> ask for real-time scheduling -> activate -> loop.
 A tick: read -> safety triggers -> policy (once per policy period on the backend's clock) -> Eq. 8 -> transfer scheme
-(runtime/transfer/schemes.py: direct, the paper's Eq. 9 on the PINN, ...; with a reference model, the gap monitor
+(runtime/transfer/: direct, the paper's Eq. 9 on the PINN, ...; with a reference model, the gap monitor
 scores its last prediction) -> safety filter -> write -> telemetry -> observers (`runtime.observers`: evaluation
 and recording, outside every timed section; they may end the run, never change what is sent). A trip of the safety
 stage (or SIGINT/SIGTERM) puts the backend into its damping state at once and holds it for `safety.damping_hold_s`
@@ -48,7 +48,9 @@ from runtime.pacing import Pacer
 from runtime.realtime import RealtimeGrant, request_realtime
 from runtime.safety import SafetyStage, SafetyState
 from runtime.transfer.gap_monitor import GapMonitor
-from runtime.transfer.schemes import TransferScheme, build_scheme
+from runtime.transfer.interface import TransferScheme
+from runtime.transfer.schemes import build_scheme
+from runtime.transfer.stage import settings_for
 
 AT_REST_QD = 0.05            # rad/s: the damping hold ends early once every joint is this slow ...
 AT_REST_TICKS = 100          # ... for this many ticks in a row
@@ -182,8 +184,8 @@ def build_gap_monitor(config: RobotConfig, scheme: TransferScheme) -> GapMonitor
     """The live gap monitor of a scheme that has a reference model (None for direct transfer)."""
     if scheme.reference is None:
         return None
-    return GapMonitor(config.joints, max(1, round(config.transfer.gap_monitor_window_s * config.loop_hz)),
-                      config.transfer.gap_monitor_warn_rms)
+    settings = settings_for(config).gap_monitor
+    return GapMonitor(config.joints, max(1, round(settings.window_s * config.loop_hz)), settings.warn_rms)
 
 
 def target_bounds(config: RobotConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from bruce_hw.backend import BackendError
-from bruce_hw.config import DEFAULT_CONFIG, ConfigError, RobotConfig, load_config
+from bruce_hw.config import DEFAULT_CONFIG, ConfigError, RobotConfig
 from bruce_hw.mock import MujocoBackend
 from runtime.cli import positive_seconds
 from runtime.commands import COMMAND_AXES, COMMAND_LIMITS, CommandSchedule
@@ -38,6 +38,7 @@ from runtime.falls import fall_rule
 from runtime.inference import ModelError
 from runtime.observers import FallStop, TickObserver, TickView
 from runtime.recorder import file_sha256, portable_path
+from runtime.robot_config import load_config
 from runtime.run import run_session
 from training.dataset import Dataset, DatasetError, config_hash, save_dataset
 from training.executor import Executor, ExecutorError, add_executor_arguments, job_files, make_executor

@@ -16,7 +16,23 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bruce_hw.yaml_reader import Bound
+from runtime.transfer.settings import Relation, bounds_of, setting
+
 log = logging.getLogger("runtime.transfer.gap_monitor")
+
+
+@dataclass(frozen=True)
+class GapMonitorSettings:
+    """transfer.gap_monitor"""
+
+    window_s: float = setting(0.1, Bound(0.005, 10.0, "s", "RMS window of the one-step residual"))
+    warn_rms: float = setting(2.0, Bound(0.0, 100.0, "rad/s", "window RMS that logs a warning", low_open=True))
+
+    @classmethod
+    def relations(cls, transfer, config) -> dict[str, Relation]:
+        bound = bounds_of(cls)["window_s"].narrowed("at least 5 ticks of rates.loop_hz", low=5.0 / config.loop_hz)
+        return {"window_s": Relation(bound, "rates.loop_hz", config.loop_hz)}
 
 
 @dataclass

@@ -22,12 +22,14 @@ from typing import Protocol
 import mujoco
 import numpy as np
 
-from bruce_hw.config import REFERENCE_MODELS, RobotConfig
+from bruce_hw.config import RobotConfig
 from bruce_hw.quaternion import euler_of, roll_pitch_quaternion, rotation_entries
 from bruce_hw.types import GroundTruth
 from runtime.estimation import BaseEstimate
 from runtime.estimation.kinematic import FEET
 from runtime.inference import ModelError, OnnxPinn
+
+REFERENCE_MODELS = ("pinn", "nominal")  # transfer.reference_model: the kinds `build_reference` makes
 
 
 class ReferenceModel(Protocol):

@@ -1,6 +1,7 @@
 """Physical bounds of every numeric setting (robot config, reality-gap profiles, scenarios): dangerous values are
 refused with one line naming the key and the range, through the file and through `--set`; the tables and
-docs/config_bounds.md agree."""
+docs/config_bounds.md agree. The config's `transfer` section is the runtime's (runtime/transfer/stage.py): its
+keys are checked here too, through `runtime.robot_config.load_config` and the registry's bounds."""
 
 from __future__ import annotations
 
@@ -17,19 +18,20 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from support.paths import REPO
 
-from bruce_hw.config import (
-    BOUNDS,
-    ConfigError,
-    SafetyConfig,
-    TransferConfig,
-    bound_for,
-    load_config,
-    parse_config,
-    resolve_config_path,
-)
+from bruce_hw.config import BOUNDS, ConfigError, SafetyConfig, parse_config, resolve_config_path
+from bruce_hw.config import bound_for as description_bound_for
 from bruce_hw.reality_gap import GAP_BOUNDS, GapError, load_gap, profile_names
 from bruce_hw.yaml_reader import Bound, apply_overrides
 from runtime.commands import SCENARIO_BOUNDS, CommandSchedule
+from runtime.robot_config import load_config
+from runtime.transfer.stage import settings_for, transfer_bounds
+
+TRANSFER_BOUNDS = transfer_bounds()
+
+
+def bound_for(key: str) -> Bound:
+    """The Bound of a concrete key of a robot config: the transfer section's from the registry, the rest bruce_hw's."""
+    return TRANSFER_BOUNDS[key] if key.startswith("transfer.") else description_bound_for(key)
 
 ROBOTS = ("configs/robots/bruce.yaml", "configs/robots/bruce_can.yaml")
 CAN = ROBOTS[1]
@@ -265,23 +267,22 @@ def test_shipped_gaps_and_scenarios_are_inside_their_tables():
 
 def test_the_doc_lists_every_bound_with_its_range():
     doc = (REPO / "docs" / "config_bounds.md").read_text()
-    for table in (BOUNDS, GAP_BOUNDS, SCENARIO_BOUNDS):
+    for table in (BOUNDS, TRANSFER_BOUNDS, GAP_BOUNDS, SCENARIO_BOUNDS):
         for key, bound in table.items():
             row = f"| `{key}` | {bound.unit or '–'} | {bound.interval()}{' (integer)' if bound.integer else ''} |"
             assert row in doc, row
 
 
-@pytest.mark.parametrize("section, dataclass_", [("safety", SafetyConfig), ("transfer", TransferConfig)])
-def test_the_safety_and_transfer_keys_are_the_bounds_table_s(config, section, dataclass_):
-    """BOUNDS lists the keys of these sections once: "SECTION.a.b" is field a_b, and a value set there lands in it."""
-    keys = [key for key in BOUNDS if key.startswith(f"{section}.")]
-    numeric = {f.name for f in dataclasses.fields(dataclass_)} - {"scheme", "reference_model"}
-    assert {key.removeprefix(f"{section}.").replace(".", "_") for key in keys} == numeric
+def test_the_safety_keys_are_the_bounds_table_s(config):
+    """BOUNDS lists the keys of the safety section once: "safety.a" is field a, and a value set there lands in it
+    (the transfer section's: tests/runtime/transfer/test_transfer_settings.py)."""
+    keys = [key for key in BOUNDS if key.startswith("safety.")]
+    assert {key.removeprefix("safety.") for key in keys} == {f.name for f in dataclasses.fields(SafetyConfig)}
     for key in keys:
-        field = key.removeprefix(f"{section}.").replace(".", "_")
-        shipped = getattr(getattr(config, section), field)
+        field = key.removeprefix("safety.")
+        shipped = getattr(config.safety, field)
         value = shipped + 1 if isinstance(shipped, int) else round(shipped * 1.01, 9)
-        assert getattr(getattr(load_config(overrides=[f"{key}={value}"]), section), field) == value, key
+        assert getattr(load_config(overrides=[f"{key}={value}"]).safety, field) == value, key
 
 
 # -- property: whatever a leaf is set to, the loader refuses it by name or the config is inside every bound --------
@@ -308,6 +309,9 @@ def numbers_of(value, where: str = "config"):
     elif isinstance(value, tuple | list):
         for i, item in enumerate(value):
             yield from numbers_of(item, f"{where}[{i}]")
+    elif isinstance(value, dict):  # the transfer settings' sections
+        for name, item in value.items():
+            yield from numbers_of(item, f"{where}.{name}")
     elif dataclasses.is_dataclass(value):
         for f in dataclasses.fields(value):
             if f.name != "raw":
@@ -321,12 +325,13 @@ def check_leaf(path_name: str, key: str, value) -> None:
     try:
         tree = set_leaf(RAW[path_name], key, value, path)
         config = parse_config(tree, path)
+        transfer = settings_for(config)
     except ConfigError as exc:
         message = str(exc)
         named = key in message or re.sub(r"(\[\d+\])+$", "", key) in message
         assert "\n" not in message and named, (key, value, message)
         return
-    for where, numbers in numbers_of(config):
+    for where, numbers in (*numbers_of(config), *numbers_of(transfer, "transfer")):
         assert np.all(np.isfinite(numbers)), (key, value, where)
     for leaf, number in numeric_leaves(tree):
         assert bound_for(leaf).contains(number), (key, value, leaf, number)

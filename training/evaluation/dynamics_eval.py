@@ -484,7 +484,8 @@ def parse_ks(text: str) -> tuple[int, ...]:
 
 
 def run_dynamics(args: argparse.Namespace, argv: Sequence[str]) -> int:
-    from bruce_hw.config import DEFAULT_CONFIG, load_config
+    from bruce_hw.config import DEFAULT_CONFIG
+    from runtime.robot_config import load_config
 
     if not 0.0 < args.train_fraction < 1.0:
         raise EvalError(f"--train-fraction: expected a fraction in (0, 1), got {args.train_fraction}")

@@ -25,9 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bruce_hw.config import ConfigError, RobotConfig, load_config
+from bruce_hw.config import ConfigError, RobotConfig
 from bruce_hw.types import GroundTruth
 from runtime.recorder import LOG_FORMAT, LOG_VERSION, META_FILE, RunRecorder, describe_run, file_sha256
+from runtime.robot_config import load_config
 from training.evaluation.report import json_safe
 from training.evaluation.transfer_metrics import joint_rmse, offset_and_shape
 

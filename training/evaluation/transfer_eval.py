@@ -20,17 +20,13 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bruce_hw.config import (
-    DEFAULT_CONFIG,
-    REFERENCE_MODELS,
-    TRANSFER_SCHEMES,
-    ConfigError,
-    load_config,
-    resolve_config_path,
-)
+from bruce_hw.config import DEFAULT_CONFIG, ConfigError, resolve_config_path
 from bruce_hw.reality_gap import GapError, RealityGap, latency_ticks, load_gap
 from runtime.observers import TRACKING_SKIP_S
 from runtime.policy_spec import policy_spec_for
+from runtime.robot_config import load_config
+from runtime.transfer.reference_models import REFERENCE_MODELS
+from runtime.transfer.registry import listed_schemes, scheme_names
 from training.evaluation.report import json_safe
 from training.evaluation.transfer_acceptance import (
     ONE_FACTOR_PROFILES,
@@ -45,6 +41,7 @@ from training.evaluation.transfer_runs import (
     EXPERIMENTS,
     LOOKAHEAD_MODE,
     MODES,
+    PERFECT_MODEL_SUFFIX,
     Experiment,
     RunRecord,
     RunSpec,
@@ -343,9 +340,9 @@ def add_parser(commands) -> argparse.ArgumentParser:
                    help="the look-ahead variant's extra PINN ticks: N, 'auto' (the gap's actuator + sensor latency) "
                         "or 'off' (default: %(default)s)")
     p.add_argument("--schemes", default=None,
-                   help="comma-separated modes to compare with direct transfer: transfer schemes (direct, pinn = eq9, "
-                        "shadow, observer) and SCHEME@nominal for a scheme's perfect-model control (default: pinn and "
-                        "its look-ahead variant)")
+                   help=f"comma-separated modes to compare with direct transfer: transfer schemes ({listed_schemes()}) "
+                        f"and SCHEME{PERFECT_MODEL_SUFFIX} for a scheme's perfect-model control (default: pinn and its "
+                        "look-ahead variant)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="robot config override for every run, e.g. transfer.observer.time_constant_s=0.5 (repeatable)")
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
@@ -399,9 +396,9 @@ def settings_from_args(args) -> TransferSettings:
         schemes = tuple(m.strip() for m in args.schemes.split(",") if m.strip())
         for mode in schemes:
             scheme, model = scheme_of(mode)
-            if scheme not in TRANSFER_SCHEMES or model not in (None, *REFERENCE_MODELS):
+            if scheme not in scheme_names() or model not in (None, *REFERENCE_MODELS):
                 raise TransferError(f"--schemes: {mode!r}: expected SCHEME or SCHEME@MODEL with SCHEME one of "
-                                    f"{', '.join(TRANSFER_SCHEMES)} and MODEL one of {', '.join(REFERENCE_MODELS)}")
+                                    f"{', '.join(scheme_names())} and MODEL one of {', '.join(REFERENCE_MODELS)}")
     overrides = tuple(getattr(args, "overrides", None) or ())
     if overrides:
         overridden = load_config(args.config or DEFAULT_CONFIG, list(overrides))  # a bad --set fails here

@@ -19,7 +19,7 @@ from runtime.observers import TickObserver, heading_velocity
 
 MODES = ("direct", "pinn")
 LOOKAHEAD_MODE = "pinn_ahead"  # Eq. 9 with the reference rolled ahead over the gap's latency (not the paper's)
-# A mode is a transfer scheme (runtime.transfer.schemes.TRANSFERS) on the configured reference model, or
+# A mode is a transfer scheme (runtime.transfer.registry.scheme_names) on the configured reference model, or
 # SCHEME@nominal: the same scheme on the nominal MuJoCo model, its perfect-model control.
 PERFECT_MODEL_SUFFIX = "@nominal"
 MODE_NAMES = {"direct": "direct (Eq. 8)", "pinn": "PINN (Eq. 9)", LOOKAHEAD_MODE: "PINN, look-ahead"}

@@ -56,8 +56,10 @@ def run_walking(args: argparse.Namespace) -> int:
     if args.policy and not args.policy.is_file():
         print(f"bruce-eval: {args.policy}: policy file not found", file=sys.stderr)
         return 2
+    from runtime.robot_config import load_config as load_checked  # the runtime's sections too (transfer)
+
     try:
-        load_config(args.config, overrides)
+        load_checked(args.config, overrides)
     except ConfigError as exc:
         print(f"bruce-eval: {exc}", file=sys.stderr)
         return 2

@@ -11,6 +11,7 @@ from bruce_hw.mock import MujocoBackend
 from runtime.commands import CommandSchedule
 from runtime.run import run_session
 from runtime.transfer.gap_monitor import GapMonitor
+from runtime.transfer.stage import settings_for
 
 JOINTS = ("a", "b")
 
@@ -67,7 +68,7 @@ def test_the_loop_reports_the_gap_per_joint_in_the_stats(tmp_path):
                           transfer="shadow", commands=CommandSchedule.constant(0.0, 0.0, 0.0))
     data = json.loads(stats.read_text())
     assert set(data["gap_residual_rms"]) == set(config.joints) and set(data["gap_residual_mean"]) == set(config.joints)
-    resyncs = summary.ticks // config.transfer.shadow_resync_ticks
+    resyncs = summary.ticks // settings_for(config).of("shadow").resync_ticks
     assert data["gap_samples"] == resyncs  # the prediction of every resynchronisation is scored a tick later
     assert 0.01 < max(data["gap_residual_rms"].values())  # the ramp's ticks ...
     assert np.abs(summary.gap.last.qd).max() < 1e-9  # ... and after it, none

@@ -24,7 +24,7 @@ from runtime.estimation.kinematic import KinematicEstimator
 from runtime.exit import ExitCode
 from runtime.observers import TickObserver
 from runtime.run import run_session
-from runtime.transfer import schemes as transfer_schemes
+from runtime.transfer import twin as twin_scheme
 from runtime.transfer.reference_models import foot_spheres, lowest_point, nominal_model, place_from_estimate
 from runtime.transfer.twin_runner import ThreadTwinRunner
 
@@ -109,7 +109,7 @@ def test_the_twin_on_its_own_thread_gives_the_same_torques(config, monkeypatch):
         return np.array(sent.tau)
 
     inline = run()
-    monkeypatch.setattr(transfer_schemes, "InlineTwinRunner",
+    monkeypatch.setattr(twin_scheme, "InlineTwinRunner",
                         lambda integral, lag: ThreadTwinRunner(integral, lag, wait=True))
     threaded = run()
     assert inline.shape == threaded.shape == (2500, config.n_joints)

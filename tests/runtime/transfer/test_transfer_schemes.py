@@ -1,21 +1,29 @@
-"""The transfer stage's schemes (runtime/transfer/schemes.py), their gains (runtime/transfer/gains.py), the
-perfect-model reference and the nominal twin (runtime/transfer/: reference_models.py, nominal_twin.py)."""
+"""The transfer stage's schemes (runtime/transfer/: direct.py, eq9.py, shadow.py, observer.py, twin.py, built by
+name in schemes.py), their gains (runtime/transfer/gains.py), the perfect-model reference and the nominal twin
+(runtime/transfer/: reference_models.py, nominal_twin.py)."""
 
 import math
 
 import numpy as np
 import pytest
 
-from bruce_hw.config import ConfigError, PdGains, load_config, parse_config
+from bruce_hw.config import ConfigError, PdGains, parse_config
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.types import JointCommand
 from runtime.estimation.kinematic import KinematicEstimator
 from runtime.inference import ModelError
 from runtime.mixing import eq8_torque
+from runtime.robot_config import load_config
+from runtime.transfer.eq9 import Eq9Scheme
 from runtime.transfer.gains import joint_inertia, observer_gain, pd_crossover, pd_gains, shortest_observer_time_constant
+from runtime.transfer.interface import TransferScheme
 from runtime.transfer.nominal_twin import TwinInput
+from runtime.transfer.observer import ObserverScheme
 from runtime.transfer.reference_models import NominalReference
-from runtime.transfer.schemes import Eq9Scheme, ObserverScheme, ShadowScheme, TransferScheme, TwinScheme, build_scheme
+from runtime.transfer.schemes import build_scheme
+from runtime.transfer.shadow import ShadowScheme
+from runtime.transfer.stage import settings_for
+from runtime.transfer.twin import TwinScheme
 from runtime.transfer.twin_runner import InlineTwinRunner, ThreadTwinRunner, TwinIntegral
 
 DT = 1e-3
@@ -258,8 +266,8 @@ def test_build_scheme_reads_the_config_and_pinn_means_eq9():
     np.testing.assert_allclose(observer.gain, joint_inertia(config) / 0.5)
     np.testing.assert_allclose(observer.clip, 0.5 * config.tau_limit)
     shadow = build_scheme(config, "shadow")
-    assert shadow.resync_ticks == config.transfer.shadow_resync_ticks
-    settings = config.transfer
+    settings = settings_for(config)
+    assert shadow.resync_ticks == settings.of("shadow").resync_ticks
     np.testing.assert_allclose(shadow.gains.kd, pd_gains(joint_inertia(config), settings.delay_margin_s,
                                                          settings.phase_margin_deg).kd)
     with pytest.raises(ValueError, match="unknown transfer 'eq10'"):
@@ -317,7 +325,7 @@ def test_a_nominal_shadow_rolls_the_whole_model_and_a_new_state_restarts_from_th
 
 def test_transfer_config_keys_are_bounded_and_related():
     config = load_config()
-    assert config.transfer.scheme == "direct" and config.transfer.reference_model == "pinn"
+    assert settings_for(config).scheme == "direct" and settings_for(config).reference_model == "pinn"
     with pytest.raises(ConfigError, match=r"transfer\.scheme: expected one of direct, pinn, eq9, shadow, observer"):
         load_config(overrides=["transfer.scheme=eq10"])
     with pytest.raises(ConfigError, match=r"transfer\.observer\.clip: expected a number in \(0, 1\]"):
@@ -622,7 +630,7 @@ def test_with_a_gap_the_twin_sees_an_offset_and_the_integral_acts_within_its_cli
     config = load_config(overrides=["transfer.twin.resync_s=0.1", "transfer.twin.time_constant_s=1",
                                     "transfer.twin.dead_band_rad=0"])
     offsets, integral, scheme = run_with_twin(config, load_gap("default"), 400)
-    lag = config.transfer.twin_lag_ticks
+    lag = settings_for(config).of("twin").lag_ticks
     assert offsets.max() > 1e-3
     # held until the first resync after the torque ramp, and read lag_ticks late
     assert not integral[:100 + lag].any() and integral[-1] > 0.0
@@ -642,7 +650,8 @@ def test_build_twin_schemes_read_the_config_and_resync_from_the_estimator_or_the
     assert isinstance(twin.runner, InlineTwinRunner) and not isinstance(twin.runner, ThreadTwinRunner)
     np.testing.assert_allclose(twin.runner.integral.gain, config.eq8.kp * config.dt / 4.0)
     np.testing.assert_allclose(twin.runner.integral.clip, 0.1 * config.tau_limit)
-    np.testing.assert_allclose(twin.runner.integral.dead_band, config.eq8.kp * config.transfer.twin_dead_band_rad)
+    dead_band = settings_for(config).of("twin").dead_band_rad
+    np.testing.assert_allclose(twin.runner.integral.dead_band, config.eq8.kp * dead_band)
     paced = build_scheme(config, "shadow_twin", estimator=estimator, paced=True)
     assert isinstance(paced.inner, ShadowScheme) and isinstance(paced.runner, ThreadTwinRunner)
     assert build_scheme(config, "twin", base_state=backend.ground_truth).resync_state == backend.ground_truth
