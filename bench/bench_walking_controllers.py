@@ -23,7 +23,8 @@ from bruce_hw.config import load_config
 from bruce_hw.mock import MujocoBackend
 from runtime.commands import CommandSchedule
 from runtime.inference import OnnxPolicy
-from runtime.policy import ObservationBuilder, PolicyController
+from runtime.observation.builder import ObservationBuilder
+from runtime.policy import PolicyController
 from runtime.run import run_session
 from runtime.walking.teacher import WalkingTeacher
 

@@ -62,6 +62,14 @@ def euler_rows(quats: np.ndarray) -> np.ndarray:
                      np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))], axis=1)
 
 
+def quaternion_rows(eulers: np.ndarray) -> np.ndarray:
+    """The inverse of `euler_rows`: (N, 4) unit quaternions (w, x, y, z) of (N, 3) rows of ZYX (roll, pitch, yaw)."""
+    half = np.asarray(eulers) / 2
+    (cr, cp, cy), (sr, sp, sy) = np.cos(half).T, np.sin(half).T
+    return np.stack([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+                     cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy], axis=1)
+
+
 def rotate_to_body(quat: Sequence[float], v_world: np.ndarray) -> np.ndarray:
     """R^T v: a world vector in the body frame."""
     return np.array(rotation_entries(quat)).reshape(3, 3).T @ v_world

@@ -4,8 +4,8 @@ ONNX tensor names. It lets `bruce-run` run a policy trained elsewhere (docs/byo_
 
 Where a run's spec comes from (`policy_spec_for`): the config's `policy.spec` (`bruce-run --policy-spec`), else a
 `policy_spec` entry in the model's sidecar (`<model>.onnx.json`: a path relative to the sidecar, or the spec
-inline), else the shipped Table I spec (`configs/robots/policy_specs/table1.yaml`, the observation of
-`runtime.policy.observation_layout`). Every failure is one ConfigError naming the file and the dotted key.
+inline), else the shipped Table I spec (`configs/robots/policy_specs/table1.yaml`). The terms a spec can name are
+`runtime.observation.registry`'s. Every failure is one ConfigError naming the file and the dotted key.
 """
 
 from __future__ import annotations
@@ -21,26 +21,13 @@ import numpy as np
 
 from bruce_hw.config import ConfigError, RobotConfig
 from bruce_hw.yaml_reader import Bound, YamlReader, bound_lookup, read_yaml
+from runtime.observation import builtin_terms  # noqa: F401  (registers our terms before a spec names them)
+from runtime.observation.registry import OBSERVATION_TERMS
 
 SPECS_PACKAGE = "configs.robots"
 SPECS_FOLDER = "policy_specs"
 TABLE_ONE = "table1"  # the spec of a policy without one: the paper's Table I, as our policies are trained
 
-# term -> values per frame (None: one per joint, in the spec's joint order)
-TERM_WIDTHS: dict[str, int | None] = {
-    "clock": 2,               # sin, cos of the gait phase (runtime.walking.gait.GaitClock)
-    "command": 3,             # vx, vy (m/s), yaw rate (rad/s), rate-limited as the gait follows it (Table I)
-    "raw_command": 3,         # the same, as the command schedule gives it (--cmd ramps it up over 0.5 s)
-    "q": None,                # joint positions (rad)
-    "qd": None,               # joint velocities (rad/s)
-    "base_linvel": 3,         # base linear velocity, base frame (m/s)
-    "base_angvel": 3,         # base angular velocity, base frame (rad/s)
-    "euler": 3,               # roll, pitch (rad), yaw minus the commanded heading (rad)
-    "projected_gravity": 3,   # the unit gravity vector (0, 0, -1) in the base frame
-    "last_action": None,      # the previous joint targets (rad), after scale and offset
-    "last_raw_action": None,  # the previous network output, after action.clip, before scale and offset
-}
-JOINT_TERMS = frozenset(term for term, width in TERM_WIDTHS.items() if width is None)
 HISTORY_ORDERS = ("oldest_first", "newest_first")
 _TERM_KEYS = {"term", "offset", "clip", "scale", "history", "history_order"}
 _TOP_KEYS = {"rate_hz", "joints", "observation", "obs_clip", "action", "onnx"}
@@ -89,6 +76,12 @@ class ActionMap:
     scale: np.ndarray          # (n_joints,)
     offset: np.ndarray         # (n_joints,), rad
     clip: float | None
+
+    def output_of(self, targets: np.ndarray) -> np.ndarray:
+        """The network output that gives `targets` (spec order, any leading axes), as far as the map inverts: 0
+        where a joint's scale is 0."""
+        return np.divide(targets - self.offset, self.scale, out=np.zeros(np.shape(targets)),
+                         where=self.scale != 0.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -248,17 +241,16 @@ def _values(r: YamlReader, key: str, width: int, joints: tuple[str, ...] | None,
 def _term(r: YamlReader, key: str, joints: tuple[str, ...], standing: np.ndarray) -> ObservationTerm:
     """A term: its name alone (no offset, clip or scale) or a mapping with `term` and the optional keys."""
     if isinstance(r.node(key), str):
-        term = r.choice(key, tuple(TERM_WIDTHS))
-        width = len(joints) if term in JOINT_TERMS else TERM_WIDTHS[term]
-        return ObservationTerm(term=term, width=width, offset=np.zeros(width), clip=None, scale=np.ones(width))
+        width = OBSERVATION_TERMS[r.choice(key, tuple(OBSERVATION_TERMS))].width_for(len(joints))
+        return ObservationTerm(term=r.node(key), width=width, offset=np.zeros(width), clip=None, scale=np.ones(width))
     node = r.mapping(key, _TERM_KEYS, required={"term"})
-    term = r.choice(f"{key}.term", tuple(TERM_WIDTHS))
-    names = joints if term in JOINT_TERMS else None
-    width = len(joints) if names else TERM_WIDTHS[term]
+    definition = OBSERVATION_TERMS[r.choice(f"{key}.term", tuple(OBSERVATION_TERMS))]
+    names = joints if definition.per_joint else None
+    width = definition.width_for(len(joints))
     newest_first = "history_order" in node and r.choice(f"{key}.history_order", HISTORY_ORDERS) == "newest_first"
     return ObservationTerm(
-        term=term, width=width,
-        offset=_values(r, f"{key}.offset", width, names, standing if term in ("q", "last_action") else None, 0.0),
+        term=definition.name, width=width,
+        offset=_values(r, f"{key}.offset", width, names, standing if definition.joint_angles else None, 0.0),
         clip=r.number(f"{key}.clip") if "clip" in node else None,
         scale=_values(r, f"{key}.scale", width, names, None, 1.0),
         history=r.number(f"{key}.history") if "history" in node else 1, newest_first=newest_first)

@@ -92,7 +92,7 @@ def nan_pinn_onnx(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def random_policy_onnx(tmp_path_factory):
-    from runtime.policy import ObservationBuilder
+    from runtime.observation.builder import ObservationBuilder
     from training.onnx_export import export_mlp_policy_onnx, make_random_policy
 
     obs_dim = ObservationBuilder(load_config()).size
@@ -106,7 +106,7 @@ def constant_policy_onnx(tmp_path_factory):
     included): make(values, name) -> path."""
     from onnx import TensorProto, helper
 
-    from runtime.policy import ObservationBuilder
+    from runtime.observation.builder import ObservationBuilder
 
     obs_dim = ObservationBuilder(load_config()).size
     folder = tmp_path_factory.mktemp("constant_policies")

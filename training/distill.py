@@ -2,12 +2,13 @@
 
     python -m training.distill --out configs/robots/policies/bruce_walk.onnx [--seed 0] [--rounds N] ...
 
-The student sees the runtime policy's observation (`runtime.policy.ObservationBuilder`), and its action goes through
-the runtime's own loop (`runtime.run.run_session`: Eq. 8, safety) at 1 kHz in the mock. DAgger (Ross et al. 2011):
-round 0 rolls out the teacher; in round k the executed action is the teacher's with probability beta_decay^k, else
-the student's; the teacher labels every visited state and the student is trained on all rounds' data after each
-round. Sampled, ramped velocity commands, random pushes and action noise widen the states visited. The exported graph
-maps obs to action in SI units (normalisation folded in). The observation and the committed policy: docs/walking.md.
+The student sees the runtime policy's observation (Table I, `runtime.observation.builder.ObservationBuilder`), and
+its action goes through the runtime's own loop (`runtime.run.run_session`: Eq. 8, safety) at 1 kHz in the mock.
+DAgger (Ross et al. 2011): round 0 rolls out the teacher; in round k the executed action is the teacher's with
+probability beta_decay^k, else the student's; the teacher labels every visited state and the student is trained on
+all rounds' data after each round. Sampled, ramped velocity commands, random pushes and action noise widen the states
+visited. The exported graph maps obs to action in SI units (normalisation folded in). The observation and the
+committed policy: docs/walking.md.
 """
 
 from __future__ import annotations
@@ -34,8 +35,8 @@ from bruce_hw.mock import MujocoBackend
 from runtime.commands import COMMAND_LIMITS, CommandSchedule
 from runtime.estimation import GroundTruthEstimator
 from runtime.exit import INTERRUPTS
+from runtime.observation.builder import ObservationBuilder
 from runtime.observers import FallStop, TickObserver, TickView
-from runtime.policy import ObservationBuilder
 from runtime.recorder import portable_path
 from runtime.run import run_session
 from runtime.walking.teacher import WalkingTeacher

@@ -110,8 +110,8 @@ def export_checked(model: nn.Module, example_inputs: tuple[torch.Tensor, ...], p
 
 
 def export_mlp_policy_onnx(model: nn.Module, path: str | Path, obs_dim: int, n_joints: int, *,
-                           opset: int = 17) -> Path:
-    """Export a feed-forward policy: obs [1, obs_dim] -> action [1, n_joints]."""
+                           opset: int = 17, input_name: str = "obs", output_name: str = "action") -> Path:
+    """Export a feed-forward policy: obs [1, obs_dim] -> action [1, n_joints] (tensors named as a spec names them)."""
     if obs_dim <= 0 or n_joints <= 0:
         raise ValueError(f"obs_dim and n_joints must be > 0, got {obs_dim} and {n_joints}")
     obs = torch.zeros(1, obs_dim)
@@ -120,7 +120,7 @@ def export_mlp_policy_onnx(model: nn.Module, path: str | Path, obs_dim: int, n_j
     if not isinstance(action, torch.Tensor) or tuple(action.shape) != (1, n_joints):
         got = tuple(action.shape) if isinstance(action, torch.Tensor) else type(action).__name__
         raise ValueError(f"the policy maps obs [1, {obs_dim}] to {got}, expected action [1, {n_joints}]")
-    return export_checked(model, (obs,), path, input_names=("obs",), output_names=("action",), opset=opset,
+    return export_checked(model, (obs,), path, input_names=(input_name,), output_names=(output_name,), opset=opset,
                            op_counts={}, metadata={"kind": "mlp_policy", "obs_dim": obs_dim, "n_joints": n_joints})
 
 

@@ -3,7 +3,7 @@ import onnxruntime as ort
 import pytest
 
 from runtime.inference import ModelError, OnnxPinn, OnnxPolicy
-from runtime.policy import ObservationBuilder
+from runtime.observation.builder import ObservationBuilder
 
 
 def test_pinn_carries_its_lstm_state_and_resets(stateful_pinn_onnx, config):

@@ -250,7 +250,7 @@ def test_a_dagger_episode_runs_the_safety_stage(config):
 
 def test_a_dagger_episode_pushes_and_the_student_may_see_the_kinematic_estimate(config, monkeypatch):
     import training.distill as distill
-    from runtime.policy import ObservationBuilder
+    from runtime.observation.builder import ObservationBuilder
 
     pushes = []
 

@@ -8,7 +8,7 @@ from bruce_hw.echo import EchoBackend
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.quaternion import euler_of, rotate_to_body
 from runtime.estimation import BaseEstimate, GroundTruthEstimator
-from runtime.policy import ObservationBuilder
+from runtime.observation.builder import ObservationBuilder
 from runtime.walking.gait import COMMAND_ACCELERATION, gait_period
 
 

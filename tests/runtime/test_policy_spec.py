@@ -20,8 +20,8 @@ from runtime.commands import CommandSchedule
 from runtime.controllers import build_controller
 from runtime.estimation import BaseEstimate, GroundTruthEstimator
 from runtime.inference import ModelError, OnnxPolicy
+from runtime.observation.builder import ObservationBuilder
 from runtime.observers import TickObserver
-from runtime.policy import ObservationBuilder, SpecObservation
 from runtime.policy_spec import load_policy_spec, parse_policy_spec, spec_file
 from runtime.run import run_session
 
@@ -271,7 +271,7 @@ def test_the_spec_comes_from_the_sidecar_unless_the_config_names_one(config, leg
 def test_history_stacks_the_last_frames_in_the_order_asked(config):
     def observations(order: str) -> list[np.ndarray]:
         tree = {"joints": "config", "observation": [{"term": "q", "history": 3, "history_order": order}]}
-        builder = SpecObservation(config, parse_policy_spec(tree, "history.yaml", config))
+        builder = ObservationBuilder(config, parse_policy_spec(tree, "history.yaml", config))
         base = BaseEstimate(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3), np.zeros(3), np.zeros(3))
         out = []
         for k in range(4):

@@ -7,7 +7,7 @@ import pytest
 
 from runtime.commands import limit_violation
 from runtime.inference import OnnxPolicy
-from runtime.policy import ObservationBuilder
+from runtime.observation.builder import ObservationBuilder
 from runtime.walking.gait import GaitClock
 from training.distill import DistillSettings, distill, rollout, sample_commands
 

@@ -3,9 +3,10 @@
 A policy step is 10 physics steps of 1 ms (`mujoco.rollout` over every env's own MjModel, on `nthread` threads; no
 Python per physics step) with the policy's a_t as the target of the Eq. 8 PD actuators (`sim_model`). Each episode
 draws a randomisation (`randomisation`), a command (resampled now and then) and pushes. The actor observation is the
-runtime's (`runtime.policy.ObservationBuilder`, batched) of the simulator's truth as `GroundTruthEstimator` reports it,
-plus the episode's observation noise; the critic's adds Table I's privileged state. An env ends on the runtime's fall
-rule (`runtime.falls`) or at the time-out and restarts inside `step`.
+one the policy spec `env.policy_spec` asks for (default Table I, configs/robots/policy_specs/table1.yaml), built by
+the runtime's `ObservationBuilder` (batched) of the simulator's truth as `GroundTruthEstimator` reports it, plus the
+episode's observation noise; the critic's adds Table I's privileged state. An env ends on the runtime's fall rule
+(`runtime.falls`) or at the time-out and restarts inside `step`.
 """
 
 from __future__ import annotations
@@ -14,19 +15,21 @@ import copy
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
+from pathlib import Path
 from typing import Any
 
 import mujoco
 import numpy as np
 from mujoco import rollout
 
-from bruce_hw.config import RobotConfig
+from bruce_hw.config import ConfigError, RobotConfig
 from bruce_hw.mock import CONTACT_THRESHOLD_N
-from bruce_hw.quaternion import euler_rows, rotation_entries
+from bruce_hw.quaternion import euler_rows, quaternion_rows, rotation_entries
 from bruce_hw.yaml_reader import Bound, YamlReader
 from runtime.commands import COMMAND_LIMITS
 from runtime.falls import fallen
-from runtime.policy import ObservationBuilder
+from runtime.observation.builder import ObservationBuilder
+from runtime.policy_spec import TABLE_ONE, PolicySpec, load_policy_spec
 from runtime.run import target_bounds
 from runtime.walking.gait import gait_phase, swing_height
 from runtime.walking.teacher import TeacherParams
@@ -82,9 +85,15 @@ class WalkEnvConfig:
         "pushes.angular_impulse_nms", (0.0, 0.05), Bound(0.0, 2.0, "N·m·s", "random axis"), "range")
     push_duration_s: float = _setting("pushes.duration_s", 0.1, Bound(0.01, 1.0, "s", "whole policy periods"))
     randomisation: RandomisationRanges = field(default_factory=RandomisationRanges)
+    # The actor's observation (and how the exported policy's output becomes targets): a spec file, or the name of
+    # a shipped one (configs/robots/policy_specs/); runtime/policy_spec.py, docs/byo_policy.md.
+    policy_spec: str = TABLE_ONE
 
     def __post_init__(self) -> None:
         r = YamlReader(self.source, None, ValueError)
+        if not isinstance(self.policy_spec, str) or not self.policy_spec:
+            raise r.fail(_join(self.key, "policy_spec"), "a policy spec file or the name of a shipped one",
+                         self.policy_spec)
         for f in _SETTINGS:
             key = f"{self.key}.{f.metadata['key']}" if self.key else f.metadata["key"]
             value, bound = getattr(self, f.name), f.metadata["bound"]
@@ -106,7 +115,7 @@ class WalkEnvConfig:
         r = YamlReader(source, {key: d} if key else d, ValueError)
         keys = [f.metadata["key"] for f in _SETTINGS]
         sections = {k.split(".")[0] for k in keys}
-        node = r.mapping(key, sections | {"randomisation"})
+        node = r.mapping(key, sections | {"randomisation", "policy_spec"})
         values: dict[str, Any] = {}
         for section in sections & set(node):
             names = {k.partition(".")[2] for k in keys if k.startswith(f"{section}.")}
@@ -119,6 +128,8 @@ class WalkEnvConfig:
         ranges_key = _join(key, "randomisation")
         values["randomisation"] = (RandomisationRanges.read(r, ranges_key) if "randomisation" in node
                                    else RandomisationRanges(source=str(source), key=ranges_key))
+        if "policy_spec" in node:
+            values["policy_spec"] = _spec_beside(source, r.string(_join(key, "policy_spec")))
         return cls(source=str(source), key=key, **values)
 
 
@@ -129,11 +140,29 @@ def _join(key: str, name: str) -> str:
     return f"{key}.{name}" if key else name
 
 
-# The env's arrays that carry over from one policy step to the next (with the draws, the observation builder's clock
-# and heading reference, and the random generator): what a checkpoint must hold.
+def _spec_beside(source: str, name: str) -> str:
+    """A spec named in the settings file `source`: a shipped spec's bare name as it is; a path absolute, else
+    relative to the working directory if it exists there, else to the settings file's folder."""
+    path = Path(name)
+    if not path.suffix and len(path.parts) == 1 or path.is_absolute() or path.exists():
+        return name
+    return str(Path(source).parent / path)
+
+
+def training_spec(robot: RobotConfig, config: WalkEnvConfig) -> PolicySpec:
+    """The spec the environment observes with; a ConfigError naming the file and key if it cannot be trained on."""
+    spec = load_policy_spec(config.policy_spec, robot)
+    if spec.rate_hz != robot.policy_hz:
+        raise ConfigError(f"{config.source}: {_join(config.key, 'policy_spec')}: {spec.name} runs at {spec.rate_hz} "
+                          f"Hz; training steps the policy at rates.policy_hz ({robot.policy_hz} Hz in {robot.path})")
+    return spec
+
+
+# The env's arrays that carry over from one policy step to the next (with the draws, the observation builder's clock,
+# heading reference and history, and the random generator): what a checkpoint must hold.
 _CONTINUED = ("state", "_late", "_noise_std", "_sensor_bias", "command", "_command_left", "_push_countdown",
-              "_push_left", "push_wrench", "last_action", "last_action2", "_qd_prev", "_linvel_prev", "_angvel_prev",
-              "tau", "episode_length", "mean_velocity")
+              "_push_left", "push_wrench", "last_action", "last_action2", "last_raw_action", "_qd_prev", "_linvel_prev",
+              "_angvel_prev", "tau", "episode_length", "mean_velocity")
 MEAN_VELOCITY_S = 0.5  # s, time constant of the averaged velocity the added tracking term scores: about a step cycle
 
 
@@ -154,8 +183,9 @@ class BaseTruth:
 class BruceWalkEnv:
     """N BRUCE simulations: `reset()` -> obs, `step(actions)` -> obs, reward, terminated, time_out, info.
 
-    obs is {"policy": (N, 44) the runtime's observation, "critic": (N, 44 + 18) with Table I's privileged state};
-    actions are (N, 10) PD targets a_t (rad, config joint order), clipped to the runtime's `target_bounds`.
+    obs is {"policy": (N, spec.obs_size) the runtime's observation of `config.policy_spec` (Table I: 44), "critic":
+    (N, obs_size + 18) with Table I's privileged state}; actions are (N, 10) PD targets a_t (rad, config joint
+    order), clipped to the runtime's `target_bounds`.
     `episode_length` (N,) policy steps, may be written (rsl-rl starts at random lengths).
     """
 
@@ -195,7 +225,8 @@ class BruceWalkEnv:
         # it integrated: sensordata[:, k] belongs to physics_states[:, k - 1]).
         self.physics_states = np.zeros((n, self.decimation, sim.nstate))
         self.sensordata = np.zeros((n, self.decimation, m.nsensordata))
-        self.builder = ObservationBuilder(robot, n)
+        self.spec = training_spec(robot, config)
+        self.builder = ObservationBuilder(robot, self.spec, n)
         self.a_low, self.a_high = target_bounds(robot)
         teacher = TeacherParams()
         self._swing_apex, self._swing_landing = teacher.swing_apex, teacher.swing_landing
@@ -211,6 +242,7 @@ class BruceWalkEnv:
         self.push_wrench = np.zeros((n, 6))                       # world force, torque on the base's centre of mass
         self.last_action = np.zeros((n, j))
         self.last_action2 = np.zeros((n, j))
+        self.last_raw_action = np.zeros((n, j))  # the network output the spec's action map makes a_{t-1} of
         self._qd_prev = np.zeros((n, j))
         self._linvel_prev = np.zeros((n, 3))
         self._angvel_prev = np.zeros((n, 3))
@@ -251,6 +283,7 @@ class BruceWalkEnv:
         walk_step = self._walk_step(a, truth)
         reward, terms = rewards.compute(walk_step, self.reward_weights, self.reward_params)
         self.last_action2, self.last_action = self.last_action, a
+        self.last_raw_action = self._output_of(a)
         self._qd_prev, self._linvel_prev, self._angvel_prev = truth.qd.copy(), truth.linvel.copy(), truth.angvel.copy()
         self._advance_schedules()
         info = {"reward_terms": terms, "episode_length": self.episode_length.copy(), "walk_step": walk_step}
@@ -275,7 +308,7 @@ class BruceWalkEnv:
                 "clock": {"cycles": np.array(clock.cycles), "command": clock.command.copy(),
                           "period": np.array(clock.period)},
                 "heading": {"heading": heading.heading.copy(), "started": heading.started.copy()},
-                "rng": self.rng.bit_generator.state}
+                "observation_history": self.builder.terms.get_state(), "rng": self.rng.bit_generator.state}
 
     def set_state(self, saved: Mapping[str, Any]) -> None:
         if np.shape(saved["state"]) != self.state.shape:
@@ -291,6 +324,7 @@ class BruceWalkEnv:
         clock.cycles, clock.command, clock.period = (np.array(saved["clock"][k]) for k in ("cycles", "command",
                                                                                            "period"))
         heading.heading, heading.started = np.array(saved["heading"]["heading"]), np.array(saved["heading"]["started"])
+        self.builder.terms.set_state(saved["observation_history"])
         self.rng.bit_generator.state = saved["rng"]
 
     # -- one policy step ----------------------------------------------------------------------------------------
@@ -347,10 +381,12 @@ class BruceWalkEnv:
     def _observe(self, truth: BaseTruth) -> dict[str, np.ndarray]:
         j = self.num_actions
         noise = self.rng.standard_normal(self._noise_std.shape) * self._noise_std + self._sensor_bias
+        euler = truth.euler + noise[:, 2 * j + 6:]
+        # the orientation as the noisy Euler angles say, so a term of the quaternion sees the same sensor error
         policy = self.builder.observe(self.command, truth.q + noise[:, :j], truth.qd + noise[:, j:2 * j],
                                       truth.linvel + noise[:, 2 * j:2 * j + 3],
-                                      truth.angvel + noise[:, 2 * j + 3:2 * j + 6],
-                                      truth.euler + noise[:, 2 * j + 6:], self.last_action)
+                                      truth.angvel + noise[:, 2 * j + 3:2 * j + 6], euler, quaternion_rows(euler),
+                                      self.last_action, self.last_raw_action)
         c, s = np.cos(truth.euler[:, 2]), np.sin(truth.euler[:, 2])
         f, t = self.push_wrench[:, :3], self.push_wrench[:, 3:]
         privileged = {
@@ -359,6 +395,14 @@ class BruceWalkEnv:
             "push_force": np.stack([c * f[:, 0] + s * f[:, 1], -s * f[:, 0] + c * f[:, 1]], axis=1),
             "push_torque": np.stack([c * t[:, 0] + s * t[:, 1], -s * t[:, 0] + c * t[:, 1], t[:, 2]], axis=1)}
         return {"policy": policy, "critic": np.concatenate([policy, *(privileged[k] for k in PRIVILEGED)], axis=1)}
+
+    def _output_of(self, targets: np.ndarray) -> np.ndarray:
+        """The network output (config joint order) that the spec's action map makes `targets` of: what a policy
+        observes as its last raw action."""
+        order = self.spec.order
+        raw = np.empty_like(targets)
+        raw[:, order] = self.spec.action.output_of(targets[:, order])
+        return raw
 
     # -- schedules: commands and pushes -------------------------------------------------------------------------
     def _steps(self, seconds_range: tuple[float, float], n: int) -> np.ndarray:
@@ -423,6 +467,7 @@ class BruceWalkEnv:
         self.builder.reset(envs)
         self.last_action[envs] = q  # as runtime.policy.PolicyController starts
         self.last_action2[envs] = q
+        self.last_raw_action[envs] = 0.0  # as PolicyController starts: no action yet (legged_gym, Isaac Lab)
         self._qd_prev[envs] = 0.0
         self._linvel_prev[envs] = 0.0
         self._angvel_prev[envs] = 0.0

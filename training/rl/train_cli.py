@@ -7,7 +7,8 @@ DIR gets `checkpoint.pt` (every `train.checkpoint_every` iterations and at the e
 environments' state and the random generators, so `--resume` continues exactly), TensorBoard files in `tb/`
 (losses, learning rate, episode reward and length, each reward term), `policy.onnx` with its sidecar, and with
 `train.snapshot_every` N, `snapshots/policy_<iteration>.onnx` every N iterations (to pick one by `bruce-eval
-walking`).
+walking`). The policy observes and acts as the spec `env.policy_spec` says (default table1, the paper's Table I;
+`--set env.policy_spec=FILE` trains on another), and its sidecar records the spec, so `bruce-run --policy` runs it so.
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ import torch
 import yaml
 
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
+from bruce_hw.yaml_reader import read_yaml
+from runtime.policy_spec import spec_file
 from runtime.recorder import file_sha256, portable_path
 from training.executor import Executor, ExecutorError, add_executor_arguments, make_executor
 from training.rl.train_config import DEFAULT_TRAINING_CONFIG, TrainingConfig, TrainingConfigError, load_training_config
@@ -75,8 +78,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _prepare(args: argparse.Namespace) -> tuple:
+    from training.rl.env import training_spec  # torch and MuJoCo load after the arguments are checked
+
     robot = load_config(args.robot_config)
     config = load_training_config(args.config, args.set)
+    training_spec(robot, config.env)  # a spec that cannot be trained on fails here, in one line
     if args.warm_start is not None:
         policy = None if args.warm_start == "none" else Path(args.warm_start)
         if policy is not None and not policy.is_file():
@@ -116,6 +122,7 @@ def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict
     from torch.utils.tensorboard import SummaryWriter
     from tqdm import tqdm
 
+    from training.rl.env import training_spec
     from training.rl.export import export_policy
     from training.rl.ppo_loop import PolicyTrainer
     from training.rl.vec_env import RslVecEnv
@@ -123,13 +130,15 @@ def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict
 
     torch.set_num_threads(1)  # the physics threads take the cores; the small networks gain nothing from more
     args.out.mkdir(parents=True, exist_ok=True)
-    executor = make_executor(args, jobs=1, ship=[robot.path.parent])
+    spec_path = spec_file(config.env.policy_spec)
+    executor = make_executor(args, jobs=1, ship=[robot.path.parent, spec_path])
     try:
         env = make_env(robot, config, executor)
     except BaseException:
         executor.close()
         raise
     vec = RslVecEnv(env, config.action_scale, config.reward_scale)
+    spec, spec_tree = training_spec(robot, config.env), read_yaml(spec_path, ConfigError, "policy spec")
     ppo = config.warm_start.ppo(config.ppo) if config.warm_start.policy else config.ppo
     trainer = PolicyTrainer(vec, ppo, seed=config.seed)
     writer = SummaryWriter(log_dir=str(args.out / "tb"))
@@ -169,7 +178,8 @@ def train(args: argparse.Namespace, config: TrainingConfig, robot, resumed: dict
         def export(path: Path) -> None:
             export_policy(trainer.actor, path, env.get_observations()["policy"].shape[1], robot.standing_pose,
                           config.action_scale, _record(args, config, robot, trainer, history),
-                          {"vx": config.env.command_vx, "vy": config.env.command_vy, "wz": config.env.command_wz})
+                          {"vx": config.env.command_vx, "vy": config.env.command_vy, "wz": config.env.command_wz},
+                          spec, spec_tree)
 
         while trainer.iteration < stop_at:
             stats = trainer.step_iteration()
@@ -216,6 +226,8 @@ def make_env(robot, config: TrainingConfig, executor: Executor):
     except ValueError as exc:
         raise TrainingConfigError(str(exc)) from None
     seeds = shard_seeds(config.seed, shards)
+    # the spec as the workers read it (shipped with the job, as the robot config)
+    per_shard = dataclasses.replace(per_shard, policy_spec=executor.where(spec_file(config.env.policy_spec)))
     if executor.name == "ray":
         from training.rl.ray_shards import RayShards
 
@@ -250,6 +262,7 @@ def _record(args: argparse.Namespace, config: TrainingConfig, robot, trainer, hi
             "config_sha256": file_sha256(config.path), "overrides": list(args.set),
             "robot_config": portable_path(robot.path), "robot_config_sha256": file_sha256(robot.path),
             "resolved_config": yaml.safe_dump(config.raw, sort_keys=False),
+            "policy_spec": portable_path(spec_file(config.env.policy_spec)),
             "warm_start": history["warm_start"], "iterations": trainer.iteration,
             "env_steps": history["env_steps"], "train_wall_s": round(history["wall_s"], 1),
             "versions": {name: _version(name) for name in ("rsl-rl-lib", "mujoco", "torch", "numpy")},

@@ -15,7 +15,7 @@ from runtime.estimation import GroundTruthEstimator
 from runtime.falls import has_fallen
 from runtime.heading import wrap_angle
 from runtime.mixing import eq8_torque
-from runtime.policy import ObservationBuilder
+from runtime.observation.builder import ObservationBuilder
 from runtime.walking.gait import gait_phase, swing_height
 from runtime.walking.teacher import TeacherParams, WalkingTeacher
 from training.rl.env import BruceWalkEnv, WalkEnvConfig

@@ -197,3 +197,52 @@ def test_a_transfer_the_actor_cannot_take_is_one_line_naming_the_key(tmp_path, c
                          "--set", "train.warm_start.method=transfer"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "train.warm_start.method transfer" in err and "(16, 44)" in err, err
+
+
+def test_a_policy_trained_on_another_spec_runs_with_it(tmp_path, capsys):
+    """legged_gym's spec at our 100 Hz (other joint order, scaled terms, raw last action, an action map): the
+    environment observes it, the export ends in the inverse of its action map, the sidecar carries it, and through
+    it the runtime's controller sends the targets the actor was trained to send."""
+    import json
+
+    import onnxruntime as ort
+    import yaml
+
+    from runtime.controllers import build_controller
+    from runtime.policy_spec import spec_file
+
+    tree = yaml.safe_load(spec_file("legged_gym").read_text())
+    del tree["rate_hz"], tree["action"]["clip"]  # training steps at rates.policy_hz and does not clip the output
+    spec_path = tmp_path / "lg100.yaml"
+    spec_path.write_text(yaml.safe_dump(tree))
+    robot = load_config()
+    config = load_training_config(overrides=["env.num_envs=4", "env.nthread=1", "ppo.num_steps_per_env=4",
+                                             "ppo.actor.hidden_dims=[16]", "ppo.critic.hidden_dims=[16]",
+                                             f"env.policy_spec={spec_path}"])
+    env = BruceWalkEnv(robot, config.env, seed=1, reward_weights=config.reward_weights)
+    vec = RslVecEnv(env, config.action_scale, config.reward_scale)
+    trainer = PolicyTrainer(vec, config.ppo, seed=1)
+    trainer.step_iteration()
+    obs = env.get_observations()["policy"].copy()
+    assert obs.shape == (4, 42)
+    path = export_policy(trainer.actor, tmp_path / "lg.onnx", 42, robot.standing_pose, config.action_scale, {},
+                         {"vx": (-0.5, 0.8), "vy": (-0.3, 0.3), "wz": (-0.5, 0.5)}, env.spec, tree)
+    env.close()
+    assert json.loads((tmp_path / "lg.onnx.json").read_text())["policy_spec"] == tree
+    controller, name = build_controller(robot, path)
+    assert "spec lg.onnx.json" in name and controller.spec.obs_size == 42
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    spec = controller.spec
+    for row, targets in zip(obs, vec.targets(_actor_means(trainer, obs).double().numpy()), strict=True):
+        raw = session.run(["actions"], {"obs": row[None].astype(np.float32)})[0][0].astype(np.float64)
+        sent = np.empty(10)
+        sent[spec.order] = spec.action.offset + spec.action.scale * raw
+        np.testing.assert_allclose(sent, targets, atol=1e-5)
+    # the CLI records the spec; a spec at another rate is refused in one line
+    run = tmp_path / "run"
+    assert train_policy(["--out", str(run), *SHORT, "--set", "train.iterations=1",
+                         "--set", f"env.policy_spec={spec_path}"]) == 0
+    assert json.loads((run / "policy.onnx.json").read_text())["policy_spec"] == tree
+    assert train_policy(["--out", str(tmp_path / "r50"), *SHORT, "--set", "env.policy_spec=legged_gym"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "env.policy_spec: legged_gym.yaml runs at 50 Hz" in err, err

@@ -1,0 +1,91 @@
+"""A spec's observation from registered terms (`SpecTerms`): each term's function, then, the same for every term
+and any batch, the spec's joint order, offset, clip, scale (Isaac Lab's order: clip, then scale) and history, and
+last the spec's obs_clip."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from runtime.observation.inputs import ObservationInputs
+from runtime.observation.registry import OBSERVATION_TERMS
+from runtime.policy_spec import ObservationTerm, PolicySpec
+
+
+class _TermSteps:
+    """One of the spec's terms: its function and which steps change anything (an identity costs nothing and keeps
+    the term's values exact)."""
+
+    def __init__(self, term: ObservationTerm, spec: PolicySpec):
+        self.term = term
+        definition = OBSERVATION_TERMS[term.term]
+        self.function = definition.function
+        order = spec.order
+        self.order = order if definition.per_joint and not np.array_equal(order, np.arange(len(order))) else None
+        self.offset = bool(np.any(term.offset))
+        self.scale = bool(np.any(term.scale != 1.0))
+
+    def frame(self, inputs: ObservationInputs) -> np.ndarray:
+        """(N, width): this tick's frame of the term."""
+        t = self.term
+        x = np.asarray(self.function(inputs))
+        if x.shape != (inputs.batch, t.width):
+            raise ValueError(f"observation term {t.term!r}: its function returned shape {x.shape}, expected "
+                             f"({inputs.batch}, {t.width})")
+        if self.order is not None:
+            x = x[:, self.order]
+        if self.offset:
+            x = np.subtract(x, t.offset)
+        if t.clip is not None:
+            x = np.clip(x, -t.clip, t.clip)
+        if self.scale:
+            x = np.multiply(x, t.scale)
+        return x
+
+
+class SpecTerms:
+    """The observation `spec` asks for, of a batch of `batch` robots, from their `ObservationInputs`, once per
+    policy tick, in order. A term with history keeps each robot's last frames, all equal to the robot's first one
+    after its reset (as Isaac Lab's history buffers start)."""
+
+    def __init__(self, spec: PolicySpec, batch: int):
+        self.spec = spec
+        self.size = spec.obs_size
+        self.steps = [_TermSteps(term, spec) for term in spec.terms]
+        # (N, history, width) per term with history, newest frame in [:, 0]
+        self.frames = [np.zeros((batch, t.history, t.width)) if t.history > 1 else None for t in spec.terms]
+        self.started = np.zeros(batch, dtype=bool)
+
+    def reset(self, envs=...) -> None:
+        """The robots `envs` (a mask or indices into the batch) start a run: their history restarts."""
+        self.started[envs] = False
+
+    def __call__(self, inputs: ObservationInputs) -> np.ndarray:
+        obs = np.empty((inputs.batch, self.size))
+        start = 0
+        for steps, frames in zip(self.steps, self.frames, strict=True):
+            term = steps.term
+            x = steps.frame(inputs)
+            if frames is not None:
+                frames[:, 1:] = frames[:, :-1]
+                frames[:, 0] = x
+                fresh = ~self.started
+                if fresh.any():
+                    frames[fresh] = x[fresh, None, :]
+                x = (frames if term.newest_first else frames[:, ::-1]).reshape(len(x), term.size)
+            obs[:, start:start + term.size] = x
+            start += term.size
+        self.started[:] = True
+        if self.spec.obs_clip is not None:
+            np.clip(obs, -self.spec.obs_clip, self.spec.obs_clip, out=obs)
+        return obs
+
+    def get_state(self) -> dict[str, Any]:
+        """The history, for a checkpoint."""
+        return {"frames": [None if f is None else f.copy() for f in self.frames], "started": self.started.copy()}
+
+    def set_state(self, saved: Mapping[str, Any]) -> None:
+        self.frames = [None if f is None else np.array(f, dtype=float) for f in saved["frames"]]
+        self.started = np.array(saved["started"], dtype=bool)
