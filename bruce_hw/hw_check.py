@@ -11,10 +11,20 @@ import argparse
 import math
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from bruce_hw.bus_report import (
+    PRESENCE_TIMEOUT_S,
+    PRESENCE_TRIES,
+    RTT_REPLY_TIMEOUT_S,
+    TICK_S,
+    BusReport,
+    RoundTrips,
+    add_timing,
+    verdict_1khz,
+)
 from bruce_hw.bus_startup import ids_text
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, RobotConfig, load_config
 from bruce_hw.watchdog_probe import PROBE_COUNTS, run_watchdog_probe
@@ -67,48 +77,11 @@ BEAR_REGISTERS = ("torque_enable", "winding_temperature", "powerstage_temperatur
                   "input_voltage")
 TEMPERATURE_WARN_C = 75.0  # BRUCE-OP v0.0.7's warnings (top-level display)
 VOLTAGE_WARN_V = 14.5
-# -- round trips (DESCRIPTION)
+# -- round trips (DESCRIPTION; the 1 kHz criterion: bruce_hw/bus_report.py)
 RTT_CYCLES = 300
-TICK_S = 0.001
-COMPUTE_S = 0.0002            # a tick's own work besides the bus
-HOLDS_P99_S = TICK_S - COMPUTE_S
 ARM_RATE_HZ = 50.0            # the arm thread's rate (bruce_hw/hw.py)
 SENSE_MIN_RATE_HZ = 950.0
 SENSE_MAX_AGE_P99_S = 0.002
-RTT_REPLY_TIMEOUT_S = 0.05    # a slow reply is timed, not lost
-PRESENCE_TIMEOUT_S = 0.02     # the BEAR pings and reads: a device this late is as good as missing
-PRESENCE_TRIES = 3            # requests in a row a device must leave unanswered to be missing: one lost reply is not
-
-
-@dataclass
-class BusReport:
-    name: str
-    lines: list[str] = field(default_factory=list)   # one per device, for people
-    missing: list[int] = field(default_factory=list)
-    faults: list[str] = field(default_factory=list)  # "ID n: flags"
-    warnings: list[str] = field(default_factory=list)
-    error: str | None = None                         # the bus itself could not be used
-
-    @property
-    def ok(self) -> bool:
-        return self.error is None and not self.missing and not self.faults
-
-    def problem(self) -> str:
-        """One phrase naming the bus and what is wrong with it (empty when ok)."""
-        what = ([f"cannot use the bus ({self.error})"] if self.error else []) + (
-            [f"missing {ids_text(self.missing)}"] if self.missing else []) + (
-            [f"{len(self.faults)} device(s) with faults"] if self.faults else [])
-        return f"{self.name.split(' (')[0]}: {', '.join(what)}" if what else ""
-
-    def text(self) -> str:
-        head = f"{self.name}: " + ("OK" if self.ok else "PROBLEM")
-        body = [f"  {line}" for line in self.lines]
-        if self.error:
-            body.append(f"  cannot use the bus: {self.error}")
-        if self.missing:
-            body.append(f"  missing ID(s): {', '.join(str(i) for i in self.missing)}")
-        body += [f"  fault: {f}" for f in self.faults] + [f"  warning: {w}" for w in self.warnings]
-        return "\n".join([head, *body])
 
 
 def check_bear(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
@@ -159,7 +132,7 @@ def check_bear(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
             else:
                 bus.reply_timeout_s = RTT_REPLY_TIMEOUT_S
                 trips = bear_round_trips(bus, answering, rtt_cycles)
-                _timing_lines(report, trips, verdict_1khz(trips))
+                add_timing(report, trips, verdict_1khz(trips))
                 timeout = getattr(bus_cfg, "reply_timeout_s", 0.0) or 0.002
                 slow = sum(t > timeout for t in trips.seconds)
                 if slow:
@@ -242,7 +215,7 @@ def check_dynamixel(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
         if rtt_cycles and answering:
             trips = dynamixel_round_trips(port, handler, answering, rtt_cycles)
             arm, holds = arm_verdict(trips)
-            _timing_lines(report, trips, (f"{arm}; {verdict_1khz(trips)[0]}", holds))
+            add_timing(report, trips, (f"{arm}; {verdict_1khz(trips)[0]}", holds))
     finally:
         port.closePort()
     return report
@@ -280,7 +253,7 @@ def check_sense(config: RobotConfig, listen_s: float = 0.2, polls: int = 0) -> B
                             f"(|a| {math.sqrt(float(imu.accel @ imu.accel)):.2f}); gyro {_vec(imu.gyro)} rad/s; "
                             f"contacts closed: {', '.join(closed) or 'none'}")
         if timing is not None:
-            _timing_lines(report, timing, timing.verdict())
+            add_timing(report, timing, timing.verdict())
             max_age = getattr(config.safety, "max_sensor_age_s", math.inf)
             if timing.ages and max(timing.ages) > max_age:
                 report.warnings.append(f"a tick saw data {1e3 * max(timing.ages):.1f} ms old, beyond "
@@ -320,49 +293,6 @@ def check_can(config: RobotConfig) -> BusReport:
 
 
 # -- round trips (DESCRIPTION) ----------------------------------------------------------------------------------
-@dataclass
-class RoundTrips:
-    """Timed exchanges of one bus: seconds each (those that completed), and how many lost a reply."""
-
-    what: str
-    seconds: list[float] = field(default_factory=list)
-    lost: int = 0
-
-    def percentile(self, q: float) -> float:
-        return float(np.percentile(self.seconds, q)) if self.seconds else math.nan
-
-    @property
-    def p50(self) -> float:
-        return self.percentile(50)
-
-    @property
-    def p99(self) -> float:
-        return self.percentile(99)
-
-    def line(self) -> str:
-        """"round trip over 300 read-only bulk cycles of 10 IDs: p50 0.412 ms, p99 0.803 ms, max 1.210 ms"."""
-        head = f"round trip over {len(self.seconds) + self.lost} {self.what}: "
-        if not self.seconds:
-            return head + "no exchange completed"
-        text = head + (f"p50 {1e3 * self.p50:.3f} ms, p99 {1e3 * self.p99:.3f} ms, max {1e3 * max(self.seconds):.3f} "
-                       "ms")
-        return text + (f", {self.lost} lost a reply (not timed)" if self.lost else "")
-
-
-def verdict_1khz(trips: RoundTrips) -> tuple[str, bool]:
-    """(a phrase for people, whether the bus holds 1 kHz without help), by DESCRIPTION's criterion."""
-    if not trips.seconds:
-        return "cannot hold 1 kHz: no exchange completed", False
-    if trips.p99 <= HOLDS_P99_S:
-        return f"holds 1 kHz (p99 <= {1e3 * HOLDS_P99_S:.1f} ms)", True
-    if trips.p50 <= TICK_S:
-        return (f"holds 1 kHz only with late ticks or a bus thread (p99 > {1e3 * HOLDS_P99_S:.1f} ms, p50 <= "
-                f"{1e3 * TICK_S:.1f} ms)"), False
-    rate = 10 * math.floor(1.0 / (trips.p50 + COMPUTE_S) / 10)
-    return (f"cannot hold 1 kHz: expect {rate} Hz (p50 {1e3 * trips.p50:.2f} ms + {1e3 * COMPUTE_S:.1f} ms of work "
-            "per tick)"), False
-
-
 def arm_verdict(trips: RoundTrips) -> tuple[str, bool]:
     """Whether the arm thread's 50 Hz is safe: p99 within half its period."""
     budget = 0.5 / ARM_RATE_HZ
@@ -451,14 +381,6 @@ def sense_stream_timing(board, polls: int) -> StreamTiming:
                 time.sleep(deadline - now - 0.0002)
         ages.append(board.age(now))
     return StreamTiming(time.monotonic() - start, board.sample_count - first, ages)
-
-
-def _timing_lines(report: BusReport, timing, verdict: tuple[str, bool]) -> None:
-    """The figures and the verdict as one line of the report; a bus that cannot keep up is a warning too."""
-    text, holds = verdict
-    report.lines.append(f"{timing.line()}: {text}")
-    if not holds and "cannot hold" in text:
-        report.warnings.append(f"round trip: {text}")
 
 
 def check(config: RobotConfig, rtt_cycles: int = 0) -> list[BusReport]:
