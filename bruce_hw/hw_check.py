@@ -1,8 +1,9 @@
 """`bruce-hw-check` (`main`): ping every device the robot config names and report what answers, what is missing,
 the error flags, temperatures and voltages, then each bus's round trip and whether it can hold the 1 kHz loop
-(`check`); read-only but for the sense board's stream mode. `--probe-watchdog` (`run_watchdog_probe`) measures the
-unit of the BEAR watchdog_timeout register, and writes. Exit codes, verdicts and the probe's method, as --help prints
-them: `DESCRIPTION`.
+(`check`); read-only but for the sense board's stream mode. The legs' check is their kind's `diagnose`
+(bruce_hw/legs/), the arms' and the sense board's are here, the report they share is bruce_hw/bus_report.py.
+`--probe-watchdog` (`run_watchdog_probe`) measures the unit of the BEAR watchdog_timeout register, and writes. Exit
+codes, verdicts and the probe's method, as --help prints them: `DESCRIPTION`.
 """
 
 from __future__ import annotations
@@ -15,18 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bruce_hw.bus_report import (
-    PRESENCE_TIMEOUT_S,
-    PRESENCE_TRIES,
-    RTT_REPLY_TIMEOUT_S,
-    TICK_S,
-    BusReport,
-    RoundTrips,
-    add_timing,
-    verdict_1khz,
-)
+from bruce_hw.bus_report import PRESENCE_TRIES, TICK_S, BusReport, RoundTrips, add_timing, verdict_1khz
 from bruce_hw.bus_startup import ids_text
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, RobotConfig, load_config
+from bruce_hw.leg_kinds import leg_kind_of
 from bruce_hw.watchdog_probe import PROBE_COUNTS, run_watchdog_probe
 
 PROG = "bruce-hw-check"
@@ -73,84 +66,11 @@ disabled and watchdog_timeout and mode are written back as they were (flash is n
 and the `--set buses.bear.watchdog_unit_s=...` to use; exit status 0 when measured, 1 when the BEAR is silent, in
 E-stop or fault, never trips (within 4 s), or the counts disagree, 2 for a bad config or a config without BEARs.
 """  # the --help text
-BEAR_REGISTERS = ("torque_enable", "winding_temperature", "powerstage_temperature", "ic_temperature",
-                  "input_voltage")
-TEMPERATURE_WARN_C = 75.0  # BRUCE-OP v0.0.7's warnings (top-level display)
-VOLTAGE_WARN_V = 14.5
 # -- round trips (DESCRIPTION; the 1 kHz criterion: bruce_hw/bus_report.py)
 RTT_CYCLES = 300
 ARM_RATE_HZ = 50.0            # the arm thread's rate (bruce_hw/hw.py)
 SENSE_MIN_RATE_HZ = 950.0
 SENSE_MAX_AGE_P99_S = 0.002
-
-
-def check_bear(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
-    from drivers.bear import BearBus
-    from drivers.bear_registers import FAULT_BITS, BearError
-    from drivers.errors import DriverError
-
-    bus_cfg = config.buses.bear
-    report = BusReport(f"BEAR bus {bus_cfg.port} ({bus_cfg.baud} baud, IDs {ids_text(bus_cfg.ids)})")
-    try:
-        # A late answer is still an answer: how late is the round trip's business, not a reason to call it missing.
-        bus = BearBus(bus_cfg.port, bus_cfg.baud, reply_timeout_s=PRESENCE_TIMEOUT_S)
-    except DriverError as exc:
-        report.error = str(exc)
-        report.missing = list(bus_cfg.ids)
-        return report
-    enabled: list[int] = []
-    with bus:
-        for device_id in bus_cfg.ids:
-            answer = _bear_presence(bus, device_id)
-            if answer is None:
-                report.missing.append(device_id)
-                report.lines.append(f"ID {device_id}: MISSING")
-                continue
-            ping, values = answer
-            flags = ", ".join(ping.flags) or "none"
-            hottest = max(values[name] for name in BEAR_REGISTERS[1:4])
-            report.lines.append(
-                f"ID {device_id}: error flags {flags}; torque_enable {int(values['torque_enable'])}; temperature "
-                f"winding {values['winding_temperature']:.1f} / power stage {values['powerstage_temperature']:.1f} "
-                f"/ IC {values['ic_temperature']:.1f} C; input {values['input_voltage']:.1f} V")
-            if ping.error & FAULT_BITS & ~BearError.WATCHDOG_ESTOP:
-                report.faults.append(f"ID {device_id}: {flags}")
-            if ping.error & BearError.WATCHDOG_ESTOP:
-                report.warnings.append(f"ID {device_id}: E-stop / damping bit set (release the E-stop; a "
-                                       "shutdown leaves the BEARs damping)")
-            if hottest > TEMPERATURE_WARN_C:
-                report.warnings.append(f"ID {device_id}: {hottest:.0f} C > {TEMPERATURE_WARN_C:.0f} C")
-            if values["input_voltage"] < VOLTAGE_WARN_V:
-                report.warnings.append(f"ID {device_id}: input {values['input_voltage']:.1f} V < {VOLTAGE_WARN_V} V")
-            if int(values["torque_enable"]) == 1:
-                enabled.append(device_id)
-        answering = [i for i in bus_cfg.ids if i not in report.missing]
-        if rtt_cycles and answering:
-            if enabled:
-                report.lines.append(f"round trip not measured: ID(s) {ids_text(enabled)} read torque_enable 1 (each "
-                                    "packet would feed the watchdog of a motor that is on); disable torque first")
-            else:
-                bus.reply_timeout_s = RTT_REPLY_TIMEOUT_S
-                trips = bear_round_trips(bus, answering, rtt_cycles)
-                add_timing(report, trips, verdict_1khz(trips))
-                timeout = getattr(bus_cfg, "reply_timeout_s", 0.0) or 0.002
-                slow = sum(t > timeout for t in trips.seconds)
-                if slow:
-                    report.warnings.append(f"{slow} of {len(trips.seconds)} bulk cycles took longer than the "
-                                           f"{1e3 * timeout:g} ms reply timeout: their replies would be lost in a run")
-    return report
-
-
-def _bear_presence(bus, device_id: int):
-    """(ping, status registers) of one BEAR, asked up to PRESENCE_TRIES times; None: it never answered."""
-    from drivers.errors import BusTimeout
-
-    for _ in range(PRESENCE_TRIES):
-        try:
-            return bus.ping(device_id), bus.read_status(device_id, BEAR_REGISTERS)
-        except BusTimeout:
-            continue
-    return None
 
 
 def _answered(request, *args):
@@ -264,34 +184,6 @@ def check_sense(config: RobotConfig, listen_s: float = 0.2, polls: int = 0) -> B
     return report
 
 
-def check_can(config: RobotConfig) -> BusReport:
-    from drivers.can_motor import CanMotorGroup
-    from drivers.errors import BusTimeout, DriverError
-
-    can = config.buses.can
-    ids = [m.id for m in can.motors]
-    report = BusReport(f"CAN {can.interface} {', '.join(can.channels)} (motor IDs {ids_text(ids)})")
-    try:
-        group = CanMotorGroup.from_config(can)
-    except (DriverError, ValueError) as exc:
-        report.error = str(exc)
-        report.missing = ids
-        return report
-    with group:
-        try:
-            state = group.read()  # the all-zero command: ignored in rest mode, answered
-        except BusTimeout as exc:
-            report.missing = list(exc.silent_ids)
-            state = group.state
-        for k, (slot, motor_id) in enumerate(zip(config.joints, ids, strict=True)):
-            if motor_id in report.missing:
-                report.lines.append(f"ID {motor_id} ({slot}): MISSING")
-            else:
-                report.lines.append(f"ID {motor_id} ({slot}): position {state.position[k]:+.3f} rad, velocity "
-                                    f"{state.velocity[k]:+.3f} rad/s, torque {state.torque[k]:+.2f} Nm")
-    return report
-
-
 # -- round trips (DESCRIPTION) ----------------------------------------------------------------------------------
 def arm_verdict(trips: RoundTrips) -> tuple[str, bool]:
     """Whether the arm thread's 50 Hz is safe: p99 within half its period."""
@@ -299,22 +191,6 @@ def arm_verdict(trips: RoundTrips) -> tuple[str, bool]:
     if trips.seconds and trips.p99 <= budget:
         return f"holds the arm thread's {ARM_RATE_HZ:.0f} Hz", True
     return f"cannot hold the arm thread's {ARM_RATE_HZ:.0f} Hz (p99 > {1e3 * budget:.0f} ms)", False
-
-
-def bear_round_trips(bus, ids, cycles: int) -> RoundTrips:
-    """`cycles` read-only bulk cycles of `ids` on an open BearBus, back to back (partial: a lost reply is counted,
-    not timed, and not retried)."""
-    ids = list(ids)
-    trips = RoundTrips(f"read-only bulk cycles of {len(ids)} IDs")
-    for _ in range(cycles):
-        start = time.perf_counter()
-        reply = bus.bulk_cycle(ids, None, partial=True)
-        took = time.perf_counter() - start
-        if reply.answered is not None and not reply.answered.all():
-            trips.lost += 1
-        else:
-            trips.seconds.append(took)
-    return trips
 
 
 def dynamixel_round_trips(port, handler, ids, cycles: int) -> RoundTrips:
@@ -385,8 +261,8 @@ def sense_stream_timing(board, polls: int) -> StreamTiming:
 
 def check(config: RobotConfig, rtt_cycles: int = 0) -> list[BusReport]:
     """Every bus's report; `rtt_cycles` > 0 adds the round trips (DESCRIPTION)."""
-    reports = [check_can(config)] if config.buses.can.motors else [check_bear(config, rtt_cycles)]
-    return [*reports, check_dynamixel(config, rtt_cycles), check_sense(config, polls=rtt_cycles)]
+    legs = leg_kind_of(config).diagnose(config, rtt_cycles)
+    return [legs, check_dynamixel(config, rtt_cycles), check_sense(config, polls=rtt_cycles)]
 
 
 def main(argv: list[str] | None = None) -> int:
