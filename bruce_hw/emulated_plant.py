@@ -29,7 +29,7 @@ from drivers.emulators.bear import EventLog
 from drivers.sense import FIRMWARE_GRAVITY
 
 if TYPE_CHECKING:
-    from bruce_hw.leg_kinds import LegEmulation
+    from bruce_hw.leg_kind import LegEmulation
 
 ARM_EVERY_STEPS = 20          # the arm bus runs at 50 Hz
 # The bring-up stand (`stand on`): the base this far above its standing height (feet clear of the floor), held by a
