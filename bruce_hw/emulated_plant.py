@@ -1,7 +1,8 @@
 """Physics behind the emulators: BRUCE's MuJoCo model (the mock backend's, `bruce_hw.mock.MujocoBackend`) stepped
 at 1 kHz in real time on a thread, so that the hw backend talks to emulated devices that move like the robot.
 
-`Plant.step`: what the leg actuators were told (BEAR or CAN motor emulators) becomes joint torques through the
+`Plant.step`: what the leg actuators were told becomes actuator torques by their kind's law (`LegEmulation.torques`,
+bruce_hw/legs/; the BEARs' torque law is there, CAN motors compute their own), then joint torques through the
 coupling, the model steps one loop period, and the measured state goes back to the leg emulators, the sense board
 and, every 20th step, the Dynamixel emulator. `EmulatedRobot` starts the emulators a config describes with a plant
 driving them (`bruce-emulate`, runtime/emulate_cli.py, is its command line); `unplug(bus)`, `set_reply_delay(bus,
@@ -15,17 +16,21 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
 
 from bruce_hw.config import RobotConfig
+from bruce_hw.leg_kinds import leg_kind_of
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.types import GroundTruth, JointCommand
 from drivers.emulators.bear import EventLog
 from drivers.sense import FIRMWARE_GRAVITY
 
-REGISTER_REFRESH_STEPS = 100  # the BEARs' config registers (gains, current limit) are re-read this often
+if TYPE_CHECKING:
+    from bruce_hw.leg_kind import LegEmulation
+
 ARM_EVERY_STEPS = 20          # the arm bus runs at 50 Hz
 # The bring-up stand (`stand on`): the base this far above its standing height (feet clear of the floor), held by a
 # spring stiff beside the legs' Eq. 8 gains (mm and tenths of a degree under the legs' swing).
@@ -33,19 +38,16 @@ STAND_LIFT_M = 0.05
 STAND_KP, STAND_KD = 5000.0, 200.0          # N/m, N s/m
 STAND_KP_ROT, STAND_KD_ROT = 500.0, 20.0    # N m/rad, N m s/rad
 MAX_CATCH_UP_STEPS = 10       # after a longer stall the lost time is dropped (`skipped_steps`), never run in a burst
-BEAR_GAIN_REGISTERS = ("limit_i_max", "p_gain_force", "d_gain_force", "p_gain_position", "d_gain_position",
-                       "p_gain_velocity")
 
 
 class Plant:
     """The MuJoCo model behind the emulators given (any may be None). `start()` steps it in real time on a
     thread; without it, `step()` advances one loop period (for tests that want no thread)."""
 
-    def __init__(self, config: RobotConfig, *, bear=None, dynamixel=None, sense=None, can: dict | None = None,
+    def __init__(self, config: RobotConfig, *, legs: LegEmulation | None = None, dynamixel=None, sense=None,
                  arm_time_constant_s: float = 0.05, lockstep: bool = False):
         self.config = config
-        self.bear, self.dynamixel, self.sense = bear, dynamixel, sense
-        self.can = dict(can or {})
+        self.legs, self.dynamixel, self.sense = legs, dynamixel, sense
         self.sim = MujocoBackend(config)
         self.sim.configure()
         self.sim.activate()
@@ -54,12 +56,7 @@ class Plant:
         self._stand_at = np.zeros(3)
         self.dt = config.dt
         self.n = config.n_joints
-        self.kt = config.torque_per_amp
-        self.damping_kd = config.safety.damping_kd
         self.coupling = config.coupling
-        self.bear_ids = list(config.buses.bear.ids)
-        self._can_slots = self._can_layout() if self.can else []
-        self._registers: dict[str, np.ndarray] = {}
         self.arm_q = np.zeros(len(config.arms.names))
         self.arm_qd = np.zeros_like(self.arm_q)
         self.arm_time_constant_s = arm_time_constant_s
@@ -69,9 +66,10 @@ class Plant:
         self.late_steps = 0           # steps started more than one period late
         self.skipped_steps = 0        # steps dropped after stalls
         self.lockstep = lockstep
-        # Lockstep: the BEAR emulator's lock is the plant's, since its bulk hook steps the plant with that lock held
-        # and every other path (place, ground truth) takes the plant's first: one lock, no order to get wrong.
-        self._lock = bear._lock if lockstep and bear is not None else threading.RLock()
+        # Lockstep: the clocking leg emulator's lock is the plant's, since its bus cycle hook steps the plant with that
+        # lock held and every other path (place, ground truth) takes the plant's first: one lock, no order to get wrong.
+        clocked = lockstep and legs is not None and legs.lock is not None
+        self._lock = legs.lock if clocked else threading.RLock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._hold()
@@ -79,9 +77,9 @@ class Plant:
     # -- lifecycle ---------------------------------------------------------------------------------------------
     def start(self) -> Plant:
         if self.lockstep:
-            if self.bear is None:
-                raise ValueError("lockstep needs a BEAR bus: its bulk cycles are the plant's clock")
-            self.bear.on_bulk = self.step
+            if self.legs is None or self.legs.lock is None:
+                raise ValueError("lockstep needs leg emulators whose bus cycles can be the plant's clock (BEAR legs)")
+            self.legs.clock(self.step)
             target = self._device_clocks
         else:
             target = self._run
@@ -90,10 +88,10 @@ class Plant:
         return self
 
     def _device_clocks(self) -> None:
-        """Lockstep: the physics waits for the host, the devices' own timers do not. Every millisecond the BEARs'
-        and the Dynamixels' watchdogs are checked (a silent host still ends in damping / stopped servos)."""
+        """Lockstep: the physics waits for the host, the devices' own timers do not. Every millisecond the leg
+        actuators' and the Dynamixels' watchdogs are checked (a silent host still ends in damping / stopped servos)."""
         while not self._stop.wait(self.dt):
-            self.bear.check_watchdogs()
+            self.legs.check_watchdogs()
             check = getattr(self.dynamixel, "check_watchdogs", None)
             if check is not None:
                 check()
@@ -202,76 +200,17 @@ class Plant:
             self.steps += 1
 
     def _actuator_torques(self) -> tuple[np.ndarray, bool, bool]:
-        """Actuator torques (coupling column order), whether any leg actuator is enabled, whether all are off.
-
-        BEAR torque per mode while torque_enable reads 1, gains taken as Nm/rad and Nm s/rad: torque (0)
-        kt goal_iq; force (3) p_gain_force (goal_position - m) + d_gain_force (goal_velocity - md) + kt goal_iq;
-        position (2) p_gain_position (goal_position - m) - d_gain_position md; velocity (1) p_gain_velocity
-        (goal_velocity - md); clipped to kt limit_i_max. Damping (3): -safety.damping_kd md; off (0) or error (2):
-        none. Reading the commands every step, held or not, also runs the BEAR watchdogs between packets, so an
-        expiry is detected within a step even when the host has gone silent."""
-        if self.can:
-            return self._can_torques()
-        if self.bear is None:
+        """Actuator torques (coupling column order), whether any leg actuator is enabled, whether all are off: the
+        leg kind's law on what the actuators measure."""
+        if self.legs is None:
             return np.zeros(self.n), False, True
-        if self.steps % REGISTER_REFRESH_STEPS == 0 or not self._registers:
-            self._registers = {name: np.array([self.bear.register_value(i, name, "config") for i in self.bear_ids])
-                               for name in BEAR_GAIN_REGISTERS}
-        c = self.bear.commands(self.bear_ids)
-        r = self._registers
-        m, md = self._m, self._md
-        mode, on = c["mode"], c["torque_enable"]
-        tau = np.zeros(self.n)
-        for value in set(mode.tolist()):  # only the modes in use are computed (the physics runs this every step)
-            if value == 0:
-                mode_tau = self.kt * c["goal_iq"]
-            elif value == 3:
-                mode_tau = (r["p_gain_force"] * (c["goal_position"] - m) + r["d_gain_force"] * (c["goal_velocity"] - md)
-                            + self.kt * c["goal_iq"])
-            elif value == 2:
-                mode_tau = r["p_gain_position"] * (c["goal_position"] - m) - r["d_gain_position"] * md
-            elif value == 1:
-                mode_tau = r["p_gain_velocity"] * (c["goal_velocity"] - md)
-            else:
-                continue
-            tau = np.where(mode == value, mode_tau, tau)
-        limit = self.kt * r["limit_i_max"]
-        tau = np.minimum(np.maximum(tau, -limit), limit)  # np.clip and np.nan_to_num cost ~20 us at this size
-        tau[np.isnan(tau)] = 0.0
-        tau = np.where(on == 1, tau, np.where(on == 3, -self.damping_kd * md, 0.0))
-        return tau, bool(np.any(on == 1)), bool(np.all(on == 0))
+        return self.legs.torques(self._m, self._md)
 
     def _publish_legs(self, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> None:
         m, md = self.coupling.actuator_positions(q), self.coupling.actuator_positions(qd)
-        self._m, self._md = m, md  # what the actuators measure, for their own PD (force/position modes)
-        if self.bear is not None:
-            self.bear.set_measured_many(self.bear_ids, m, md, tau_m / self.kt)
-        for slot in self._can_slots:
-            slot.emulator.set_state(slot.map.motor_position(m[slot.index]), slot.map.motor_velocity(md[slot.index]))
-
-    # -- CAN legs ----------------------------------------------------------------------------------------------
-    def _can_layout(self) -> list[_CanSlots]:
-        from drivers.can_motor import ActuatorMap
-
-        motors = list(self.config.buses.can.motors)
-        slots = []
-        for channel, emulator in self.can.items():
-            index = [k for k, motor in enumerate(motors) if motor.channel == channel]
-            if [motors[k].id for k in index] != list(emulator.motor_ids):
-                raise ValueError(f"CAN emulator on {channel} hosts {emulator.motor_ids}, the config puts "
-                                 f"{[motors[k].id for k in index]} there")
-            mine = [motors[k] for k in index]
-            amap = ActuatorMap.of(len(mine), [m.gear for m in mine], [m.sign for m in mine], [m.offset for m in mine])
-            slots.append(_CanSlots(emulator, np.array(index), amap))
-        return slots
-
-    def _can_torques(self) -> tuple[np.ndarray, bool, bool]:
-        tau = np.zeros(self.n)
-        engaged = False
-        for slot in self._can_slots:
-            tau[slot.index] = slot.map.actuator_torque(slot.emulator.torques())
-            engaged |= any(slot.emulator.in_motor_mode(mid) for mid in slot.emulator.motor_ids)
-        return tau, engaged, not engaged
+        self._m, self._md = m, md  # what the actuators measure, for their own PD (BEAR force/position modes)
+        if self.legs is not None:
+            self.legs.publish(m, md, tau_m)
 
     # -- arms --------------------------------------------------------------------------------------------------
     def _step_arms(self, dt: float) -> None:
@@ -287,25 +226,18 @@ class Plant:
 
 
 @dataclass
-class _CanSlots:
-    emulator: object
-    index: np.ndarray
-    map: object
-
-
-@dataclass
 class EmulatedRobot:
-    """Every device a config describes, emulated, with a plant driving them. CAN motors go on python-can's
-    `can_interface` (default "virtual": reachable from this process only)."""
+    """Every device a config describes, emulated, with a plant driving them: the legs' emulators are their kind's
+    (`legs`, bruce_hw.leg_kinds). CAN motors go on python-can's `can_interface` (default "virtual": reachable from
+    this process only)."""
 
     config: RobotConfig
     sense_command_poll_s: float = 0.05
     can_interface: str = "virtual"
-    lockstep: bool = False  # the physics steps once per host BULK_COMM (Plant(lockstep)), not on the wall clock
-    bear: object = None
+    lockstep: bool = False  # the physics steps once per host bus cycle (Plant(lockstep)), not on the wall clock
+    legs: LegEmulation | None = None
     dynamixel: object = None
     sense: object = None
-    can: dict = field(default_factory=dict)
     plant: Plant | None = None
     events: EventLog = field(default_factory=EventLog)  # the robot's own: unplug / plug of buses without a log
     unplugged: set[str] = field(default_factory=set)
@@ -316,30 +248,33 @@ class EmulatedRobot:
 
         cfg = self.config
         try:
-            if cfg.buses.can.motors:
-                from drivers.emulators.can_motor import emulators_from_config
-
-                self.can = emulators_from_config(cfg.buses.can, interface=self.can_interface)
-            else:
-                from drivers.emulators.bear import BearBusEmulator
-
-                self.bear = BearBusEmulator(cfg.buses.bear.ids).start()
+            self.legs = leg_kind_of(cfg).emulate(cfg, can_interface=self.can_interface)
             self.dynamixel = DynamixelBusEmulator(cfg.buses.dynamixel.ids, signs=cfg.arms.servo_signs,
                                                   track_goals=False).start()
             # The real firmware reads commands once a second while streaming; a shorter poll keeps repeated
             # start-ups and shutdowns from waiting that second each.
             self.sense = SenseBoardEmulator(command_poll_s=self.sense_command_poll_s, lockstep=self.lockstep).start()
-            self.plant = Plant(cfg, bear=self.bear, dynamixel=self.dynamixel, sense=self.sense,
-                               can=self.can, lockstep=self.lockstep).start()
+            self.plant = Plant(cfg, legs=self.legs, dynamixel=self.dynamixel, sense=self.sense,
+                               lockstep=self.lockstep).start()
         except BaseException:
             self.close()
             raise
         return self
 
+    # The legs' emulators under the names the tests and tools reach them by: the BEAR bus emulator (None when the
+    # legs are of another kind), the CAN motor emulators by channel ({} when they are not).
+    @property
+    def bear(self):
+        return self.legs.device if self.legs is not None and self.legs.bus == "bear" else None
+
+    @property
+    def can(self) -> dict:
+        return self.legs.device if self.legs is not None and self.legs.bus == "can" else {}
+
     def close(self) -> None:
         if self.plant is not None:
             self.plant.close()
-        for device in (self.bear, self.dynamixel, self.sense, *self.can.values()):
+        for device in (self.legs, self.dynamixel, self.sense):
             if device is not None:
                 device.close()
 
@@ -349,44 +284,57 @@ class EmulatedRobot:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    def _leg_bus(self, bus: str, what: str):
+        """The legs' emulation when `bus` names it and it can do `what` (a method name); else None."""
+        legs = self.legs
+        return legs if legs is not None and legs.bus == bus and hasattr(legs, what) else None
+
     def unplug(self, bus: str, unplugged: bool = True) -> None:
-        """Cut (`unplugged=False`: mend) a bus's wire: "bear" (BearBusEmulator.unplug: nothing reaches the BEARs,
-        nothing is answered), "dynamixel" (every servo silenced: neither answers nor acts; mending it makes every
-        servo answer again, as `silence(..., False)` with all IDs), "sense" (the board stops streaming, as
-        `set_silent`; mending it resumes the stream). The BEAR emulator logs it itself; the others here."""
-        if bus == "bear" and self.bear is not None:
-            self.bear.unplug(unplugged)
+        """Cut (`unplugged=False`: mend) a bus's wire: the legs' where their kind can ("bear": BearBusEmulator.unplug,
+        nothing reaches the BEARs, nothing is answered), "dynamixel" (every servo silenced: neither answers nor acts;
+        mending it makes every servo answer again, as `silence(..., False)` with all IDs), "sense" (the board stops
+        streaming, as `set_silent`; mending it resumes the stream). The legs' emulator logs it itself; the others
+        here."""
+        legs = self._leg_bus(bus, "unplug")
+        if legs is not None:
+            legs.unplug(unplugged)
         elif bus == "dynamixel" and self.dynamixel is not None:
             self.dynamixel.silence(self.config.buses.dynamixel.ids, unplugged)
         elif bus == "sense" and self.sense is not None:
             self.sense.set_silent(unplugged)
         else:
             raise ValueError(f"no emulated bus {bus!r} to unplug (bear, dynamixel or sense, as the config has)")
-        if bus != "bear":
+        if legs is None:
             self.events.add(f"{bus} {'unplug' if unplugged else 'plug'}")
         (self.unplugged.add if unplugged else self.unplugged.discard)(bus)
 
+    def _delayable(self) -> dict:
+        """{bus: device} of every bus that has a reply delay setting."""
+        legs = self.legs if self.legs is not None and hasattr(self.legs, "set_reply_delay") else None
+        return {bus: device for bus, device in ((getattr(legs, "bus", None), legs), ("dynamixel", self.dynamixel),
+                                                ("sense", self.sense)) if device is not None}
+
     def set_reply_delay(self, bus: str, fixed: float, jitter: float = 0.0, seed: int | str | None = None) -> None:
-        """How late a bus answers from now on: "bear", "dynamixel" (each answer starts fixed + U(0, jitter) s after
-        its request arrived) or "sense" (each packet leaves that much later); see drivers/emulators/reply_delay.py.
-        Logged as an event (`dynamixel reply delay 2 ms + U(0, 1 ms)`; the BEAR emulator logs its own)."""
-        device = {"bear": self.bear, "dynamixel": self.dynamixel, "sense": self.sense}.get(bus)
+        """How late a bus answers from now on: the legs' where their kind can ("bear"), "dynamixel" (each answer
+        starts fixed + U(0, jitter) s after its request arrived) or "sense" (each packet leaves that much later);
+        see drivers/emulators/reply_delay.py. Logged as an event (`dynamixel reply delay 2 ms + U(0, 1 ms)`; the
+        legs' emulator logs its own)."""
+        device = self._delayable().get(bus)
         if device is None:
             raise ValueError(f"no emulated bus {bus!r} to delay (bear, dynamixel or sense, as the config has)")
         device.set_reply_delay(fixed, jitter, seed)
-        if bus != "bear":
+        if device is not self.legs:
             self.events.add(f"{bus} reply delay {device.reply_delay.text()}")
 
     def reply_delays(self) -> dict[str, list[float]]:
         """{bus: [fixed, jitter]} in seconds, for every bus that has a reply delay setting."""
-        return {bus: device.reply_delay.describe() for bus, device in
-                (("bear", self.bear), ("dynamixel", self.dynamixel), ("sense", self.sense)) if device is not None}
+        return {bus: device.reply_delay.describe() for bus, device in self._delayable().items()}
 
     def drain_events(self) -> list[tuple[float, str]]:
         """Every emulator's events since the last drain (those with a `drain_events`) and the robot's own, in time
         order: (time.monotonic() stamp, text)."""
         out = self.events.drain()
-        for device in (self.bear, self.dynamixel, self.sense, *self.can.values()):
+        for device in (self.legs, self.dynamixel, self.sense):
             drain = getattr(device, "drain_events", None)
             if drain is not None:
                 out += drain()
@@ -395,25 +343,13 @@ class EmulatedRobot:
 
     def port_overrides(self) -> list[str]:
         """`KEY=VALUE` config overrides that point the hw backend at these emulators."""
-        out = []
-        if self.bear is not None:
-            out.append(f"buses.bear.port={self.bear.path}")
-        out += [f"buses.dynamixel.port={self.dynamixel.path}", f"buses.sense.port={self.sense.path}"]
-        if self.can:
-            out.append(f"buses.can.interface={self.can_interface}")
-        return out
+        return [*self.legs.port_overrides(), f"buses.dynamixel.port={self.dynamixel.path}",
+                f"buses.sense.port={self.sense.path}"]
 
     def devices(self) -> list[tuple[str, str]]:
         """(what, where) of every emulated device, for people."""
-        cfg = self.config
-        out = []
-        if self.bear is not None:
-            out.append((f"BEAR bus (IDs {_ids(cfg.buses.bear.ids)})", self.bear.path))
-        for channel, emulator in self.can.items():
-            out.append((f"CAN motors (IDs {_ids(emulator.motor_ids)})", f"{self.can_interface} channel {channel}"))
-        out.append((f"Dynamixel bus (IDs {_ids(cfg.buses.dynamixel.ids)})", self.dynamixel.path))
-        out.append(("sense board", self.sense.path))
-        return out
+        return [*self.legs.devices(), (f"Dynamixel bus (IDs {_ids(self.config.buses.dynamixel.ids)})",
+                                       self.dynamixel.path), ("sense board", self.sense.path)]
 
 
 def _ids(ids) -> str:

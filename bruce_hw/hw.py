@@ -1,12 +1,13 @@
 """The `hw` backend: BRUCE's real buses, composed from the drivers in `drivers/` by the robot config.
 
-Legs: ten Koala BEARs on RS-485 (`buses.bear`, `bruce_hw.bear_legs`), or MIT-mode CAN motors when
-`buses.can.motors` is set (`bruce_hw.can_legs`); arms: six Dynamixels held at `arms.hold_pose`
-(`bruce_hw.arm_holder`); IMU and foot contacts: the sense board (`buses.sense`). Joint <-> actuator through
-`coupling` (q = B m, qd = B md, tau_q = B^-T tau_m, tau_m = B^T tau_q). `make_hw_backend(config)` refuses to start
-with one line per missing module or device. While active, the legs' bulk cycles run on a thread of their own
-(`bruce_hw.bus_thread`), as do the sense board's reader and the arms (50 Hz), so the 1 kHz tick never waits for a
-bus (docs/timing.md). What ends in damping, the motors' own watchdogs and shutdown: docs/safety.md.
+Legs: the leg bus of the kind the config uses (`bruce_hw.leg_kinds`): ten Koala BEARs on RS-485 (`buses.bear`,
+`bruce_hw.bear_legs`), or MIT-mode CAN motors when `buses.can.motors` is set (`bruce_hw.can_legs`); arms: six
+Dynamixels held at `arms.hold_pose` (`bruce_hw.arm_holder`); IMU and foot contacts: the sense board
+(`buses.sense`). Joint <-> actuator through `coupling` (q = B m, qd = B md, tau_q = B^-T tau_m, tau_m = B^T tau_q).
+`make_hw_backend(config)` refuses to start with one line per missing module or device. While active, the legs' bulk
+cycles run on a thread of their own (`bruce_hw.bus_thread`), as do the sense board's reader and the arms (50 Hz), so
+the 1 kHz tick never waits for a bus (docs/timing.md). What ends in damping, the motors' own watchdogs and shutdown:
+docs/safety.md.
 """
 
 from __future__ import annotations
@@ -24,27 +25,24 @@ import numpy as np
 from bruce_hw.arm_holder import ArmHolder
 from bruce_hw.attitude import MahonyAttitude
 from bruce_hw.backend import Backend, BackendError, LifecycleState
-from bruce_hw.bear_legs import DEFAULT_REPLY_TIMEOUT_S, BearLegs
 from bruce_hw.bus_startup import StartupError, ids_text
 from bruce_hw.bus_thread import BusThread
-from bruce_hw.can_legs import CanLegs
 from bruce_hw.config import RobotConfig
 from bruce_hw.host_witness import HostWitness
-from bruce_hw.leg_bus import LegBus, LegReading
+from bruce_hw.leg_bus import LegBus, LegReading, LegStartup
+from bruce_hw.leg_kinds import leg_kind_of
 from bruce_hw.types import FootContacts, ImuSample, JointCommand, JointState, RobotState
 from drivers.sense import FIRMWARE_GRAVITY
 
 log = logging.getLogger("bruce_hw.hw")
 
-# driver or package -> what it is needed for
+# driver or package -> what it is needed for, beside the leg kind's own (LegKind.modules)
 REQUIRED_MODULES = {
-    "drivers.bear": "BEAR actuators over RS-485 (buses.bear)",
     "drivers.dynamixel": "Dynamixel arm servos (buses.dynamixel)",
     "drivers.sense": "sense board IMU and foot contacts (buses.sense)",
     "serial": "the serial buses (package pyserial)",
     "dynamixel_sdk": "the arm bus (package dynamixel-sdk)",
 }
-CAN_MODULES = {"drivers.can_motor": "CAN leg motors (buses.can)", "can": "the CAN legs (package python-can)"}
 # The I/O threads (sense reader, arms, the emulators in a test) must get the GIL within a fraction of
 # safety.max_sensor_age_s; CPython's default switch interval (5 ms) lets a busy thread hold them off that long.
 GIL_SWITCH_INTERVAL_S = 0.0005
@@ -64,11 +62,10 @@ def _modules_missing(modules: dict[str, str]) -> list[str]:
 
 def missing_for_hw(config: RobotConfig) -> list[str]:
     """Everything that stops the hw backend from starting here, one line each."""
-    can_legs = bool(config.buses.can.motors)
-    missing = _modules_missing(REQUIRED_MODULES) + (_modules_missing(CAN_MODULES) if can_legs else [])
-    ports = [("buses.dynamixel.port", config.buses.dynamixel.port), ("buses.sense.port", config.buses.sense.port)]
-    if not can_legs:
-        ports.insert(0, ("buses.bear.port", config.buses.bear.port))
+    legs = leg_kind_of(config)
+    missing = _modules_missing({**legs.modules, **REQUIRED_MODULES})
+    ports = [*legs.ports(config), ("buses.dynamixel.port", config.buses.dynamixel.port),
+             ("buses.sense.port", config.buses.sense.port)]
     for key, port in ports:
         if not os.path.exists(port):
             missing.append(f"device {port} ({key}) does not exist; set another with --set {key}=PATH")
@@ -109,13 +106,9 @@ class HwBackend(Backend):
         super().__init__(config)
         self.check_imu, self.check_contact = check_imu, check_contact
         self.switch_interval_s = switch_interval_s
-        self.legs: LegBus
-        if config.buses.can.motors:
-            self.legs = CanLegs(config, ping_rounds=ping_rounds, ping_retry_s=ping_retry_s)
-        else:
-            self.legs = BearLegs(config, ping_rounds=ping_rounds, ping_retry_s=ping_retry_s,
-                                 clear_attempts=clear_attempts, reply_timeout_s=bear_reply_timeout_s
-                                 or config.buses.bear.reply_timeout_s or DEFAULT_REPLY_TIMEOUT_S)
+        self.legs: LegBus = leg_kind_of(config).legs(config, LegStartup(
+            ping_rounds=ping_rounds, ping_retry_s=ping_retry_s, clear_attempts=clear_attempts,
+            reply_timeout_s=bear_reply_timeout_s))
         self.arms = ArmHolder(config, ping_rounds=ping_rounds, ping_retry_s=ping_retry_s, ramp_s=arm_ramp_s)
         self.sense = None
         self.sense_port = config.buses.sense.port
@@ -175,7 +168,7 @@ class HwBackend(Backend):
         self.arms.start()  # before the loop asks for real-time scheduling: threads inherit the caller's
         self._bus = self._new_bus_thread()  # created now, cycling from activate() on
         atexit.register(self.shutdown)  # an interpreter exit that skipped shutdown() still ends in damping
-        log.info("hw backend: configured: %s BEAR/CAN ID(s) %s, Dynamixel ID(s) %s, sense board %s",
+        log.info("hw backend: configured: %s ID(s) %s, Dynamixel ID(s) %s, sense board %s",
                  self.legs.name, ids_text(self.legs.ids), ids_text(self.config.buses.dynamixel.ids), self.sense_port)
 
     def _start_arms(self) -> None:

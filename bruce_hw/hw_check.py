@@ -1,8 +1,9 @@
 """`bruce-hw-check` (`main`): ping every device the robot config names and report what answers, what is missing,
 the error flags, temperatures and voltages, then each bus's round trip and whether it can hold the 1 kHz loop
-(`check`); read-only but for the sense board's stream mode. `--probe-watchdog` (`run_watchdog_probe`) measures the
-unit of the BEAR watchdog_timeout register, and writes. Exit codes, verdicts and the probe's method, as --help prints
-them: `DESCRIPTION`.
+(`check`); read-only but for the sense board's stream mode. The legs' check is their kind's `diagnose`
+(bruce_hw/legs/), the arms' and the sense board's are here, the report they share is bruce_hw/bus_report.py.
+`--probe-watchdog` (`run_watchdog_probe`) measures the unit of the BEAR watchdog_timeout register, and writes. Exit
+codes, verdicts and the probe's method, as --help prints them: `DESCRIPTION`.
 """
 
 from __future__ import annotations
@@ -11,12 +12,14 @@ import argparse
 import math
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from bruce_hw.bus_report import PRESENCE_TRIES, TICK_S, BusReport, RoundTrips, add_timing, verdict_1khz
 from bruce_hw.bus_startup import ids_text
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, RobotConfig, load_config
+from bruce_hw.leg_kinds import leg_kind_of
 from bruce_hw.watchdog_probe import PROBE_COUNTS, run_watchdog_probe
 
 PROG = "bruce-hw-check"
@@ -63,121 +66,11 @@ disabled and watchdog_timeout and mode are written back as they were (flash is n
 and the `--set buses.bear.watchdog_unit_s=...` to use; exit status 0 when measured, 1 when the BEAR is silent, in
 E-stop or fault, never trips (within 4 s), or the counts disagree, 2 for a bad config or a config without BEARs.
 """  # the --help text
-BEAR_REGISTERS = ("torque_enable", "winding_temperature", "powerstage_temperature", "ic_temperature",
-                  "input_voltage")
-TEMPERATURE_WARN_C = 75.0  # BRUCE-OP v0.0.7's warnings (top-level display)
-VOLTAGE_WARN_V = 14.5
-# -- round trips (DESCRIPTION)
+# -- round trips (DESCRIPTION; the 1 kHz criterion: bruce_hw/bus_report.py)
 RTT_CYCLES = 300
-TICK_S = 0.001
-COMPUTE_S = 0.0002            # a tick's own work besides the bus
-HOLDS_P99_S = TICK_S - COMPUTE_S
 ARM_RATE_HZ = 50.0            # the arm thread's rate (bruce_hw/hw.py)
 SENSE_MIN_RATE_HZ = 950.0
 SENSE_MAX_AGE_P99_S = 0.002
-RTT_REPLY_TIMEOUT_S = 0.05    # a slow reply is timed, not lost
-PRESENCE_TIMEOUT_S = 0.02     # the BEAR pings and reads: a device this late is as good as missing
-PRESENCE_TRIES = 3            # requests in a row a device must leave unanswered to be missing: one lost reply is not
-
-
-@dataclass
-class BusReport:
-    name: str
-    lines: list[str] = field(default_factory=list)   # one per device, for people
-    missing: list[int] = field(default_factory=list)
-    faults: list[str] = field(default_factory=list)  # "ID n: flags"
-    warnings: list[str] = field(default_factory=list)
-    error: str | None = None                         # the bus itself could not be used
-
-    @property
-    def ok(self) -> bool:
-        return self.error is None and not self.missing and not self.faults
-
-    def problem(self) -> str:
-        """One phrase naming the bus and what is wrong with it (empty when ok)."""
-        what = ([f"cannot use the bus ({self.error})"] if self.error else []) + (
-            [f"missing {ids_text(self.missing)}"] if self.missing else []) + (
-            [f"{len(self.faults)} device(s) with faults"] if self.faults else [])
-        return f"{self.name.split(' (')[0]}: {', '.join(what)}" if what else ""
-
-    def text(self) -> str:
-        head = f"{self.name}: " + ("OK" if self.ok else "PROBLEM")
-        body = [f"  {line}" for line in self.lines]
-        if self.error:
-            body.append(f"  cannot use the bus: {self.error}")
-        if self.missing:
-            body.append(f"  missing ID(s): {', '.join(str(i) for i in self.missing)}")
-        body += [f"  fault: {f}" for f in self.faults] + [f"  warning: {w}" for w in self.warnings]
-        return "\n".join([head, *body])
-
-
-def check_bear(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
-    from drivers.bear import BearBus
-    from drivers.bear_registers import FAULT_BITS, BearError
-    from drivers.errors import DriverError
-
-    bus_cfg = config.buses.bear
-    report = BusReport(f"BEAR bus {bus_cfg.port} ({bus_cfg.baud} baud, IDs {ids_text(bus_cfg.ids)})")
-    try:
-        # A late answer is still an answer: how late is the round trip's business, not a reason to call it missing.
-        bus = BearBus(bus_cfg.port, bus_cfg.baud, reply_timeout_s=PRESENCE_TIMEOUT_S)
-    except DriverError as exc:
-        report.error = str(exc)
-        report.missing = list(bus_cfg.ids)
-        return report
-    enabled: list[int] = []
-    with bus:
-        for device_id in bus_cfg.ids:
-            answer = _bear_presence(bus, device_id)
-            if answer is None:
-                report.missing.append(device_id)
-                report.lines.append(f"ID {device_id}: MISSING")
-                continue
-            ping, values = answer
-            flags = ", ".join(ping.flags) or "none"
-            hottest = max(values[name] for name in BEAR_REGISTERS[1:4])
-            report.lines.append(
-                f"ID {device_id}: error flags {flags}; torque_enable {int(values['torque_enable'])}; temperature "
-                f"winding {values['winding_temperature']:.1f} / power stage {values['powerstage_temperature']:.1f} "
-                f"/ IC {values['ic_temperature']:.1f} C; input {values['input_voltage']:.1f} V")
-            if ping.error & FAULT_BITS & ~BearError.WATCHDOG_ESTOP:
-                report.faults.append(f"ID {device_id}: {flags}")
-            if ping.error & BearError.WATCHDOG_ESTOP:
-                report.warnings.append(f"ID {device_id}: E-stop / damping bit set (release the E-stop; a "
-                                       "shutdown leaves the BEARs damping)")
-            if hottest > TEMPERATURE_WARN_C:
-                report.warnings.append(f"ID {device_id}: {hottest:.0f} C > {TEMPERATURE_WARN_C:.0f} C")
-            if values["input_voltage"] < VOLTAGE_WARN_V:
-                report.warnings.append(f"ID {device_id}: input {values['input_voltage']:.1f} V < {VOLTAGE_WARN_V} V")
-            if int(values["torque_enable"]) == 1:
-                enabled.append(device_id)
-        answering = [i for i in bus_cfg.ids if i not in report.missing]
-        if rtt_cycles and answering:
-            if enabled:
-                report.lines.append(f"round trip not measured: ID(s) {ids_text(enabled)} read torque_enable 1 (each "
-                                    "packet would feed the watchdog of a motor that is on); disable torque first")
-            else:
-                bus.reply_timeout_s = RTT_REPLY_TIMEOUT_S
-                trips = bear_round_trips(bus, answering, rtt_cycles)
-                _timing_lines(report, trips, verdict_1khz(trips))
-                timeout = getattr(bus_cfg, "reply_timeout_s", 0.0) or 0.002
-                slow = sum(t > timeout for t in trips.seconds)
-                if slow:
-                    report.warnings.append(f"{slow} of {len(trips.seconds)} bulk cycles took longer than the "
-                                           f"{1e3 * timeout:g} ms reply timeout: their replies would be lost in a run")
-    return report
-
-
-def _bear_presence(bus, device_id: int):
-    """(ping, status registers) of one BEAR, asked up to PRESENCE_TRIES times; None: it never answered."""
-    from drivers.errors import BusTimeout
-
-    for _ in range(PRESENCE_TRIES):
-        try:
-            return bus.ping(device_id), bus.read_status(device_id, BEAR_REGISTERS)
-        except BusTimeout:
-            continue
-    return None
 
 
 def _answered(request, *args):
@@ -242,7 +135,7 @@ def check_dynamixel(config: RobotConfig, rtt_cycles: int = 0) -> BusReport:
         if rtt_cycles and answering:
             trips = dynamixel_round_trips(port, handler, answering, rtt_cycles)
             arm, holds = arm_verdict(trips)
-            _timing_lines(report, trips, (f"{arm}; {verdict_1khz(trips)[0]}", holds))
+            add_timing(report, trips, (f"{arm}; {verdict_1khz(trips)[0]}", holds))
     finally:
         port.closePort()
     return report
@@ -280,7 +173,7 @@ def check_sense(config: RobotConfig, listen_s: float = 0.2, polls: int = 0) -> B
                             f"(|a| {math.sqrt(float(imu.accel @ imu.accel)):.2f}); gyro {_vec(imu.gyro)} rad/s; "
                             f"contacts closed: {', '.join(closed) or 'none'}")
         if timing is not None:
-            _timing_lines(report, timing, timing.verdict())
+            add_timing(report, timing, timing.verdict())
             max_age = getattr(config.safety, "max_sensor_age_s", math.inf)
             if timing.ages and max(timing.ages) > max_age:
                 report.warnings.append(f"a tick saw data {1e3 * max(timing.ages):.1f} ms old, beyond "
@@ -291,100 +184,13 @@ def check_sense(config: RobotConfig, listen_s: float = 0.2, polls: int = 0) -> B
     return report
 
 
-def check_can(config: RobotConfig) -> BusReport:
-    from drivers.can_motor import CanMotorGroup
-    from drivers.errors import BusTimeout, DriverError
-
-    can = config.buses.can
-    ids = [m.id for m in can.motors]
-    report = BusReport(f"CAN {can.interface} {', '.join(can.channels)} (motor IDs {ids_text(ids)})")
-    try:
-        group = CanMotorGroup.from_config(can)
-    except (DriverError, ValueError) as exc:
-        report.error = str(exc)
-        report.missing = ids
-        return report
-    with group:
-        try:
-            state = group.read()  # the all-zero command: ignored in rest mode, answered
-        except BusTimeout as exc:
-            report.missing = list(exc.silent_ids)
-            state = group.state
-        for k, (slot, motor_id) in enumerate(zip(config.joints, ids, strict=True)):
-            if motor_id in report.missing:
-                report.lines.append(f"ID {motor_id} ({slot}): MISSING")
-            else:
-                report.lines.append(f"ID {motor_id} ({slot}): position {state.position[k]:+.3f} rad, velocity "
-                                    f"{state.velocity[k]:+.3f} rad/s, torque {state.torque[k]:+.2f} Nm")
-    return report
-
-
 # -- round trips (DESCRIPTION) ----------------------------------------------------------------------------------
-@dataclass
-class RoundTrips:
-    """Timed exchanges of one bus: seconds each (those that completed), and how many lost a reply."""
-
-    what: str
-    seconds: list[float] = field(default_factory=list)
-    lost: int = 0
-
-    def percentile(self, q: float) -> float:
-        return float(np.percentile(self.seconds, q)) if self.seconds else math.nan
-
-    @property
-    def p50(self) -> float:
-        return self.percentile(50)
-
-    @property
-    def p99(self) -> float:
-        return self.percentile(99)
-
-    def line(self) -> str:
-        """"round trip over 300 read-only bulk cycles of 10 IDs: p50 0.412 ms, p99 0.803 ms, max 1.210 ms"."""
-        head = f"round trip over {len(self.seconds) + self.lost} {self.what}: "
-        if not self.seconds:
-            return head + "no exchange completed"
-        text = head + (f"p50 {1e3 * self.p50:.3f} ms, p99 {1e3 * self.p99:.3f} ms, max {1e3 * max(self.seconds):.3f} "
-                       "ms")
-        return text + (f", {self.lost} lost a reply (not timed)" if self.lost else "")
-
-
-def verdict_1khz(trips: RoundTrips) -> tuple[str, bool]:
-    """(a phrase for people, whether the bus holds 1 kHz without help), by DESCRIPTION's criterion."""
-    if not trips.seconds:
-        return "cannot hold 1 kHz: no exchange completed", False
-    if trips.p99 <= HOLDS_P99_S:
-        return f"holds 1 kHz (p99 <= {1e3 * HOLDS_P99_S:.1f} ms)", True
-    if trips.p50 <= TICK_S:
-        return (f"holds 1 kHz only with late ticks or a bus thread (p99 > {1e3 * HOLDS_P99_S:.1f} ms, p50 <= "
-                f"{1e3 * TICK_S:.1f} ms)"), False
-    rate = 10 * math.floor(1.0 / (trips.p50 + COMPUTE_S) / 10)
-    return (f"cannot hold 1 kHz: expect {rate} Hz (p50 {1e3 * trips.p50:.2f} ms + {1e3 * COMPUTE_S:.1f} ms of work "
-            "per tick)"), False
-
-
 def arm_verdict(trips: RoundTrips) -> tuple[str, bool]:
     """Whether the arm thread's 50 Hz is safe: p99 within half its period."""
     budget = 0.5 / ARM_RATE_HZ
     if trips.seconds and trips.p99 <= budget:
         return f"holds the arm thread's {ARM_RATE_HZ:.0f} Hz", True
     return f"cannot hold the arm thread's {ARM_RATE_HZ:.0f} Hz (p99 > {1e3 * budget:.0f} ms)", False
-
-
-def bear_round_trips(bus, ids, cycles: int) -> RoundTrips:
-    """`cycles` read-only bulk cycles of `ids` on an open BearBus, back to back (partial: a lost reply is counted,
-    not timed, and not retried)."""
-    ids = list(ids)
-    trips = RoundTrips(f"read-only bulk cycles of {len(ids)} IDs")
-    for _ in range(cycles):
-        start = time.perf_counter()
-        reply = bus.bulk_cycle(ids, None, partial=True)
-        took = time.perf_counter() - start
-        if reply.answered is not None and not reply.answered.all():
-            trips.lost += 1
-        else:
-            trips.seconds.append(took)
-    return trips
 
 
 def dynamixel_round_trips(port, handler, ids, cycles: int) -> RoundTrips:
@@ -453,18 +259,10 @@ def sense_stream_timing(board, polls: int) -> StreamTiming:
     return StreamTiming(time.monotonic() - start, board.sample_count - first, ages)
 
 
-def _timing_lines(report: BusReport, timing, verdict: tuple[str, bool]) -> None:
-    """The figures and the verdict as one line of the report; a bus that cannot keep up is a warning too."""
-    text, holds = verdict
-    report.lines.append(f"{timing.line()}: {text}")
-    if not holds and "cannot hold" in text:
-        report.warnings.append(f"round trip: {text}")
-
-
 def check(config: RobotConfig, rtt_cycles: int = 0) -> list[BusReport]:
     """Every bus's report; `rtt_cycles` > 0 adds the round trips (DESCRIPTION)."""
-    reports = [check_can(config)] if config.buses.can.motors else [check_bear(config, rtt_cycles)]
-    return [*reports, check_dynamixel(config, rtt_cycles), check_sense(config, polls=rtt_cycles)]
+    legs = leg_kind_of(config).diagnose(config, rtt_cycles)
+    return [legs, check_dynamixel(config, rtt_cycles), check_sense(config, polls=rtt_cycles)]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,5 +1,6 @@
-"""What the hw backend needs of a leg bus (BEARs on RS-485 or CAN motors): one reading type, one interface
-(`LegBus`), and the helpers both buses share (the silence rule, pinging with retries)."""
+"""What the hw backend needs of a leg bus (BEARs on RS-485, CAN motors, any kind in `bruce_hw.leg_kinds`): one
+reading type, one interface (`LegBus`), the start-up options every kind is built with (`LegStartup`), and the
+helpers the buses share (the silence rule)."""
 
 from __future__ import annotations
 
@@ -28,12 +29,25 @@ class LegReading:
     problem: str | None = None  # silence or a loss rate past the config's bound: the backend faults with this text
 
 
+@dataclass(frozen=True)
+class LegStartup:
+    """The hw backend's start-up options for its leg bus (HwBackend's keywords); a kind takes those it has use for."""
+
+    ping_rounds: int = 7
+    ping_retry_s: float = 0.5
+    clear_attempts: int = 6               # BEAR: tries at clearing a device's latched errors
+    reply_timeout_s: float | None = None  # BEAR: a bulk cycle's reply wait; None: the config's, else the driver's
+
+
 class LegBus(Protocol):
     """A leg bus as the backend drives it: start-up (`open`, `configure`), `enable`/`disable`/`damp`, one `cycle`
     per tick (torques out, a `LegReading` back; None: read only), the silence rule, link figures, `close`."""
 
-    name: str
-    ids: tuple[int, ...]
+    kind: str                 # what the bus is, for messages that name it without its port ("BEAR bus")
+    name: str                 # the bus and where it is ("BEAR bus /dev/ttyUSB0")
+    ids: tuple[int, ...]      # actuator order: coupling columns
+    temperature: np.ndarray   # hottest sensor per actuator (NaN: not measured), refreshed ...
+    monitor_count: int        # ... whenever this count moves on
 
     def open(self) -> None: ...
     def configure(self) -> None: ...

@@ -10,6 +10,7 @@ import time
 from dataclasses import dataclass
 
 from bruce_hw.config import RobotConfig
+from bruce_hw.leg_kinds import leg_kind_of
 
 PROG = "bruce-hw-check"
 
@@ -211,7 +212,7 @@ def run_watchdog_probe(config: RobotConfig, device_id: int | None, counts) -> in
     from drivers.errors import DriverError
 
     bus_cfg = config.buses.bear
-    if config.buses.can.motors or not bus_cfg.ids:
+    if leg_kind_of(config).name != "bear" or not bus_cfg.ids:
         print(f"{PROG}: --probe-watchdog needs a BEAR bus (buses.bear.ids); this config has none")
         return 2
     device_id = bus_cfg.ids[0] if device_id is None else device_id

@@ -18,6 +18,7 @@ import threading
 import time
 
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
+from bruce_hw.leg_kinds import LEG_KINDS, leg_kind_of
 from drivers.emulators.reply_delay import MAX_DELAY_S, check_delay
 
 PROG = "bruce-emulate"
@@ -179,8 +180,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.realtime:
         restore, text = _realtime()  # for this thread while it starts the emulators': they inherit it
         print(f"{PROG}: {text}")
-    if args.lockstep and config.buses.can.motors:
-        print(f"{PROG}: --lockstep steps the physics on BEAR bulk cycles; this config has CAN legs", file=sys.stderr)
+    legs = leg_kind_of(config)
+    if args.lockstep and not legs.lockstep:
+        print(f"{PROG}: --lockstep steps the physics on the legs' bus cycles (BEAR bulk cycles); this config's legs "
+              f"({legs.name}) cannot clock it", file=sys.stderr)
         return 2
     robot = EmulatedRobot(config, sense_command_poll_s=args.sense_poll_s, can_interface=args.can_interface,
                           lockstep=args.lockstep)
@@ -197,15 +200,17 @@ def main(argv: list[str] | None = None) -> int:
             # bruce-run is this process: normal scheduling on every CPU.
             restore(below=args.run is None)
     if args.bear_drop or args.bear_corrupt:
-        if robot.bear is None:
+        if robot.legs.bus != "bear":
             robot.close()
-            print(f"{PROG}: --bear-drop / --bear-corrupt need a BEAR bus; this config has CAN legs", file=sys.stderr)
+            print(f"{PROG}: --bear-drop / --bear-corrupt need a BEAR bus; this config's legs are {robot.legs.bus}",
+                  file=sys.stderr)
             return 2
-        robot.bear.set_reply_loss(args.bear_drop, args.bear_corrupt, args.loss_seed)
+        robot.legs.set_reply_loss(args.bear_drop, args.bear_corrupt, args.loss_seed)
     for bus, (fixed, jitter) in delays.items():
-        if robot.bear is None and bus == "bear":
+        if bus not in robot.reply_delays():
             robot.close()
-            print(f"{PROG}: --bear-delay / --bear-jitter need a BEAR bus; this config has CAN legs", file=sys.stderr)
+            print(f"{PROG}: --{bus}-delay / --{bus}-jitter need a {bus} bus; this config's legs are "
+                  f"{robot.legs.bus}", file=sys.stderr)
             return 2
         seed = None if args.loss_seed is None else f"{args.loss_seed}/{bus}"
         robot.set_reply_delay(bus, fixed, jitter, seed)
@@ -226,11 +231,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{PROG}: running bruce-run {shlex.join(run_args + args.run)}", flush=True)
             printer.start()
             return bruce_run(run_args + args.run)
-        if robot.can and robot.can_interface == "virtual":
-            print(f"{PROG}: the CAN motors are on python-can's `virtual` bus, which only this process reaches: run "
-                  f"the stack here with\n  {PROG} --config {shlex.quote(args.config)} --run [bruce-run options]\n"
-                  "  (in one process the emulated CAN round trip takes about a millisecond: add "
-                  "--set buses.can.timeout_s=0.005; 1 kHz needs --can-interface socketcan on vcan channels)")
+        hint = robot.legs.hint(f"{PROG} --config {shlex.quote(args.config)} --run [bruce-run options]")
+        if hint:
+            print(f"{PROG}: {hint}")
         print("run the robot stack against it with:")
         print(f"  bruce-run {shlex.join(run_args)}")
         print("Ctrl-C stops the emulators; fault commands on stdin (silence, answer, unplug, plug, loss, delay, estop, "
@@ -337,17 +340,12 @@ def execute(robot, words: list[str]) -> str:
         if not ids:
             raise ValueError("name at least one ID")
         silent = verb == "silence"
-        if bus == "bear" and robot.bear is not None:
-            robot.bear.silence(ids, silent)
+        if bus == robot.legs.bus:
+            robot.legs.silence(ids, silent)
         elif bus == "dynamixel":
             robot.dynamixel.silence(ids, silent)
-        elif bus == "can" and robot.can:
-            for emulator in robot.can.values():
-                mine = [i for i in ids if i in emulator.motor_ids]
-                if mine:
-                    (emulator.silence if silent else emulator.resume)(mine)
         else:
-            raise ValueError(f"no emulated bus {bus!r} (bear, dynamixel or can, as the config has)")
+            raise ValueError(f"no emulated bus {bus!r} ({', '.join(LEG_KINDS)} or dynamixel, as the config has)")
     elif verb in ("unplug", "plug"):
         if len(rest) != 1:
             raise ValueError(f"{verb} one bus: bear, dynamixel or sense")
@@ -355,16 +353,16 @@ def execute(robot, words: list[str]) -> str:
     elif verb == "loss":
         if len(rest) not in (3, 4) or rest[0] != "bear":
             raise ValueError("loss bear DROP CORRUPT [SEED]")
-        if robot.bear is None:
-            raise ValueError("no emulated BEAR bus (this config has CAN legs)")
-        robot.bear.set_reply_loss(float(rest[1]), float(rest[2]), int(rest[3]) if len(rest) == 4 else None)
+        if not hasattr(robot.legs, "set_reply_loss") or robot.legs.bus != rest[0]:
+            raise ValueError(f"no emulated {rest[0]} bus with reply loss (this config's legs are {robot.legs.bus})")
+        robot.legs.set_reply_loss(float(rest[1]), float(rest[2]), int(rest[3]) if len(rest) == 4 else None)
     elif verb == "delay":
         if len(rest) not in (2, 3) or rest[0] not in ("bear", "dynamixel", "sense"):
             raise ValueError("delay bear|dynamixel|sense FIXED [JITTER] (seconds)")
         robot.set_reply_delay(rest[0], check_delay(rest[1], "FIXED"),
                               check_delay(rest[2], "JITTER") if len(rest) == 3 else 0.0)
-    elif verb == "estop" and rest[0] in ("on", "off") and robot.bear is not None:
-        robot.bear.set_estop(rest[0] == "on")
+    elif verb == "estop" and rest[0] in ("on", "off") and hasattr(robot.legs, "set_estop"):
+        robot.legs.set_estop(rest[0] == "on")
     elif verb == "imu" and rest[0] in ("stop", "start"):
         robot.sense.set_silent(rest[0] == "stop")
     elif verb == "place":
@@ -390,18 +388,9 @@ def status(robot) -> dict:
                          "torque_enabled": [bool(x) for x in robot.dynamixel.torque_enabled_all()]},
            "sense": {"mode": robot.sense.mode.name.lower(), "packets_sent": robot.sense.packets_sent,
                      "packets_dropped": robot.sense.packets_dropped}}
-    if robot.bear is not None:
-        c = robot.bear.commands(list(cfg.buses.bear.ids))
-        out["bear"] = {"ids": list(cfg.buses.bear.ids), "mode": c["mode"].tolist(),
-                       "torque_enable": c["torque_enable"].tolist(), "error": c["error"].tolist(),
-                       "bulk_comm": robot.bear.requests["BULK_COMM"], "replies": robot.bear.replies,
-                       "reply_losses": dict(robot.bear.reply_losses)}
+    out[robot.legs.bus] = robot.legs.status()
     out["unplugged"] = sorted(getattr(robot, "unplugged", ()))
     out["reply_delay"] = robot.reply_delays()  # {bus: [fixed, jitter]} in seconds
-    for channel, emulator in robot.can.items():
-        out.setdefault("can", {})[channel] = {
-            "ids": list(emulator.motor_ids), "motor_mode": [emulator.in_motor_mode(i) for i in emulator.motor_ids],
-            "kd": [emulator.command(i).kd for i in emulator.motor_ids]}
     return out
 
 
@@ -409,13 +398,8 @@ def _counters(robot) -> str:
     plant = robot.plant
     text = "" if plant is None else (f"{plant.steps} physics steps ({plant.late_steps} late, {plant.skipped_steps} "
                                      "skipped)")
-    if robot.bear is not None:
-        text += f"; BEAR bus: {robot.bear.requests['BULK_COMM']} BULK_COMM"
-        losses = robot.bear.reply_losses
-        if losses:
-            text += (f", {sum(losses.values())} of {robot.bear.replies} replies spoiled ("
-                     + ", ".join(f"{n} {kind}" for kind, n in sorted(losses.items())) + ")")
-    return text
+    legs = robot.legs.counters() if robot.legs is not None else ""
+    return f"{text}; {legs}" if legs else text
 
 
 if __name__ == "__main__":
