@@ -1,7 +1,7 @@
 """The kinds of leg bus the hw path knows (`LEG_KINDS`, one module each under bruce_hw/legs/; what a kind provides:
 `bruce_hw.leg_kind`), and which one a robot config uses (`leg_kind_of`). The hw backend, the emulated plant,
 bruce-hw-check and bruce-emulate look the kind up here instead of naming BEARs or CAN motors. Adding one:
-docs/extending_leg_actuator.md.
+docs/extending.md ("Adding a leg actuator").
 """
 
 from __future__ import annotations

@@ -4,7 +4,8 @@ lists or builds schemes asks here: bruce-run's `--transfer`, the config's `trans
 
 A registration is the scheme's name (and older aliases), its settings class (the keys of `transfer.<section>`,
 runtime/transfer/settings.py; None: it has none) and its builder: a function of a `SchemeContext` that returns the
-scheme (a `runtime.transfer.interface.TransferScheme`). docs/extending_transfer_scheme.md walks through adding one.
+scheme (a `runtime.transfer.interface.TransferScheme`). Adding one, step by step: docs/extending.md ("Adding a
+transfer scheme").
 """
 
 from __future__ import annotations

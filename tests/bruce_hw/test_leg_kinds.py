@@ -1,4 +1,4 @@
-"""A leg bus kind added the way docs/extending_leg_actuator.md says: this one file and its registration
+"""A leg bus kind added the way docs/extending.md ("Adding a leg actuator") says: this one file and its registration
 (`register_leg_kind`). Its actuators are ideal torque motors reached inside this process (no driver, no wire),
 chosen by a buses.bear.port of `inproc:NAME` (a test cannot add a section to the YAML). The hw backend builds its
 legs (`make_hw_backend`), the emulated plant steps in lockstep with its bus cycles and takes the actuator torques from

@@ -1,4 +1,5 @@
-"""An observation term added as docs/extending_observation_term.md says: one function, one registration."""
+"""An observation term added as docs/extending.md ("Adding an observation term") says: one function, one
+registration."""
 
 from runtime.observation.registry import PER_JOINT, register_term
 
