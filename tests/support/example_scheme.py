@@ -1,6 +1,6 @@
 """A transfer scheme added the way docs/extending.md ("Adding a transfer scheme") says: this one file (its settings,
 the scheme, its builder) and nothing else but the registration call at the end. `offset` sends tau* plus a constant
-share of each joint's torque limit (`transfer.offset.share`), and counts its ticks, so a test sees that a run used it."""
+share of each joint's torque limit (`transfer.offset.share`), and counts its ticks, so a test sees a run used it."""
 
 from __future__ import annotations
 
