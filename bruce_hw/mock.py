@@ -5,6 +5,9 @@ switches) and, separately, simulator ground truth for evaluation. Motors are emu
 the command's torque (including any motor-side PD) is evaluated every physics step, saturated per actuator
 through the coupling, then by the joint box limits of the model's motors.
 
+The model, its named indices, the standing placement and the sensor read-out are BRUCE's model
+(`bruce_hw.robot_model.BruceModel`, `self.robot`); the backend adds the lifecycle, the motors, pushes and the gap.
+
 With a `RealityGap` (`bruce_hw.reality_gap`) the mock plays "the real robot": perturbed model, delayed and lagged
 torques, noisy and delayed sensors; ground truth stays truth. Without one, the per-tick path is the nominal one.
 """
