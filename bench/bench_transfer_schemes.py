@@ -22,8 +22,8 @@ import time
 import numpy as np
 
 from bruce_hw.config import load_config
-from bruce_hw.mock import MujocoBackend
 from bruce_hw.reality_gap import load_gap
+from bruce_hw.robot_model import BruceModel
 from runtime.transfer.registry import scheme_entry, scheme_names
 from runtime.transfer.schemes import build_scheme
 
@@ -69,8 +69,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     config, a, q, qd, tau_star = recorded_walk(args.seconds)
-    standing = MujocoBackend(config)
-    standing.configure()
+    robot = BruceModel(config)
+    standing = robot.new_data()
+    robot.place_standing(standing)
+
+    def standing_truth():  # the standing robot's base state, for the schemes on the nominal model
+        return robot.ground_truth(standing)
+
     command = np.array(COMMAND)
     names = scheme_names(aliases=False)  # `pinn` is eq9
     modes = args.schemes.split(",") if args.schemes else [*names, *(f"{s}@nominal" for s in names
@@ -79,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     for mode in modes:
         name, _, model = mode.partition("@")
         overrides = [f"transfer.reference_model={model}"] if model else []
-        schemes[mode] = build_scheme(load_config(overrides=overrides), name, base_state=standing.ground_truth)
+        schemes[mode] = build_scheme(load_config(overrides=overrides), name, base_state=standing_truth)
     times = {mode: ([], []) for mode in schemes}
     gc.collect()
     gc.disable()

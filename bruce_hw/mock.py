@@ -5,6 +5,9 @@ switches) and, separately, simulator ground truth for evaluation. Motors are emu
 the command's torque (including any motor-side PD) is evaluated every physics step, saturated per actuator
 through the coupling, then by the joint box limits of the model's motors.
 
+The model, its named indices, the standing placement and the sensor read-out are BRUCE's model
+(`bruce_hw.robot_model.BruceModel`, `self.robot`); the backend adds the lifecycle, the motors, pushes and the gap.
+
 With a `RealityGap` (`bruce_hw.reality_gap`) the mock plays "the real robot": perturbed model, delayed and lagged
 torques, noisy and delayed sensors; ground truth stays truth. Without one, the per-tick path is the nominal one.
 """
@@ -16,13 +19,11 @@ import numpy as np
 
 from bruce_hw.backend import Backend, BackendError, LifecycleState
 from bruce_hw.config import RobotConfig
-from bruce_hw.model_binding import JointBinding, bind_joints
+from bruce_hw.model_binding import JointBinding
 from bruce_hw.reality_gap import ActuatorGap, RealityGap, SensorGap, apply_to_model, latency_ticks
-from bruce_hw.types import FootContacts, GroundTruth, ImuSample, JointCommand, JointState, RobotState
+from bruce_hw.robot_model import CONTACT_THRESHOLD_N, IMU_SENSORS, BruceModel  # noqa: F401 (re-exported)
+from bruce_hw.types import GroundTruth, JointCommand, RobotState
 
-IMU_SENSORS = ("imu_gyro", "imu_accel", "imu_quat")
-CONTACT_THRESHOLD_N = 1.0  # a toe/heel switch closes above this normal force
-AMBIENT_TEMPERATURE_C = 30.0  # the mock has no thermal model; it reports a constant winding temperature
 DAMPING = "damping"  # what a faulted backend sends its motors (through the bus latency of a reality gap)
 
 
@@ -37,6 +38,7 @@ class MujocoBackend(Backend):
         self._sensor_gap: SensorGap | None = None
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
+        self.robot: BruceModel | None = None  # the model, its named indices and placement (after configure)
         self.binding: JointBinding | None = None  # where the config's joints are in the model (after configure)
         self._command: JointCommand | None = None
         self.estop_pressed = False  # the mock's emergency-stop input, reported in every RobotState
@@ -46,33 +48,12 @@ class MujocoBackend(Backend):
     # -- lifecycle ---------------------------------------------------------------------------------------
     def _on_configure(self) -> None:
         cfg = self.config
-        model_file = str(cfg.mjcf)
-        try:
-            model = mujoco.MjModel.from_xml_path(model_file)
-        except Exception as exc:  # mujoco raises ValueError with the parser's message
-            raise BackendError(f"{model_file}: cannot load the MuJoCo model: {exc}") from exc
-        if abs(model.opt.timestep - cfg.dt) > 1e-12:
-            raise BackendError(f"{model_file}: timestep {model.opt.timestep} s does not match the config's "
-                               f"loop period 1/rates.loop_hz = {cfg.dt} s")
-        self.binding = bind_joints(model, cfg.joints, model_file)  # shared with the models built on this one
-        self._qpos, self._dofs, self._acts = self.binding.qpos, self.binding.dofs, self.binding.acts
-        self._sensor = {}
-        for name in (*IMU_SENSORS, "r_toe", "r_heel", "l_toe", "l_heel"):
-            sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, name)
-            if sid < 0:
-                raise BackendError(f"{model_file}: no sensor named {name!r} (the mock needs {IMU_SENSORS} and "
-                                   "one touch sensor per toe and heel)")
-            adr = int(model.sensor_adr[sid])
-            self._sensor[name] = slice(adr, adr + int(model.sensor_dim[sid]))
-        touch = [self._sensor[n].start for n in ("r_toe", "r_heel", "l_toe", "l_heel")]
-        self._touch = np.array(touch)
-        self._base = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "base")
-        if self._base < 0 or model.body_jntnum[self._base] != 1 or \
-                model.jnt_type[model.body_jntadr[self._base]] != mujoco.mjtJoint.mjJNT_FREE:
-            raise BackendError(f"{model_file}: the mock needs a body 'base' with a free joint")
-        self._soles = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, s) for s in ("r_sole", "l_sole")]
-        if min(self._soles) < 0:
-            raise BackendError(f"{model_file}: the mock needs sites 'r_sole' and 'l_sole' on the soles")
+        robot = BruceModel(cfg)  # loads and checks the MJCF; the joints', sensors' and bodies' indices
+        model = robot.model
+        self.robot = robot
+        self.binding = robot.binding  # shared with the models built on this one
+        self._qpos, self._dofs, self._acts = robot.qpos, robot.dofs, robot.acts
+        self._base = robot.base_body
         self._torque_limit = cfg.actuator_torque_limit
         if self.gap is not None:
             apply_to_model(self.gap, model, self._dofs, self._acts, cfg.joints)
@@ -83,11 +64,10 @@ class MujocoBackend(Backend):
             self._sensor_gap = SensorGap(self.gap, cfg.joints, latency_ticks(self.gap.sensor_latency_s, cfg.dt),
                                          dt=cfg.dt)
         self.model = model
-        self.data = mujoco.MjData(model)
+        self.data = robot.new_data()
         self._damping_kd = np.full(cfg.n_joints, cfg.safety.damping_kd)
         self._zero = np.zeros(cfg.n_joints)
-        self._temperature = np.full(cfg.n_joints, AMBIENT_TEMPERATURE_C)
-        self.nominal_base_height = self._standing_height(cfg.standing_pose)
+        self.nominal_base_height = robot.standing_height(cfg.standing_pose)
         self.place(self.initial_q)
 
     def _on_activate(self) -> None:
@@ -103,22 +83,9 @@ class MujocoBackend(Backend):
         self._command = None
 
     # -- helpers -----------------------------------------------------------------------------------------
-    def _standing_height(self, q: np.ndarray) -> float:
-        """Base height at which the lower sole touches the floor with the base level and legs at q."""
-        data = mujoco.MjData(self.model)
-        data.qpos[0:7] = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
-        data.qpos[self._qpos] = q
-        mujoco.mj_kinematics(self.model, data)
-        return float(-min(data.site_xpos[s][2] for s in self._soles))
-
     def place(self, q: np.ndarray) -> None:
-        """Reset the simulation: legs at q, base level and at rest, soles on the floor."""
-        data = self.data
-        mujoco.mj_resetData(self.model, data)
-        data.qpos[0:3] = (0.0, 0.0, self._standing_height(q))
-        data.qpos[3:7] = (1.0, 0.0, 0.0, 0.0)
-        data.qpos[self._qpos] = q
-        mujoco.mj_forward(self.model, data)
+        """Reset the simulation: legs at q, base level and at rest, soles on the floor (`BruceModel.place_standing`)."""
+        self.robot.place_standing(self.data, q)
         self._command = None
         self._push_until = -1.0  # mj_resetData cleared the applied force
         if self._actuator_gap is not None:
@@ -169,18 +136,7 @@ class MujocoBackend(Backend):
     def measure(self) -> RobotState:
         """What the model's sensors read now, noise-free (fresh arrays; no step): a nominal model's own sensors, for
         the twin's estimator."""
-        data = self.data
-        t = data.time
-        s = data.sensordata
-        return RobotState(
-            joints=JointState(q=data.qpos[self._qpos].copy(), qd=data.qvel[self._dofs].copy(),
-                              tau=data.actuator_force[self._acts].copy(), temperature=self._temperature.copy(),
-                              stamp=t),
-            imu=ImuSample(gyro=s[self._sensor["imu_gyro"]].copy(), accel=s[self._sensor["imu_accel"]].copy(),
-                          orientation=s[self._sensor["imu_quat"]].copy(), stamp=t),
-            contacts=FootContacts(contact=s[self._touch] > CONTACT_THRESHOLD_N, stamp=t),
-            estop=self.estop_pressed,
-        )
+        return self.robot.measure(self.data, self.estop_pressed)
 
     def _write(self, command: JointCommand) -> None:
         self._command = command
@@ -193,8 +149,4 @@ class MujocoBackend(Backend):
         return self.data.xpos.copy(), self.data.xquat.copy()
 
     def _ground_truth(self) -> GroundTruth:
-        data = self.data
-        return GroundTruth(sim_time=float(data.time), base_pos=data.qpos[0:3].copy(),
-                           base_quat=data.qpos[3:7].copy(), base_linvel=data.qvel[0:3].copy(),
-                           base_angvel=data.qvel[3:6].copy(), joint_q=data.qpos[self._qpos].copy(),
-                           joint_qd=data.qvel[self._dofs].copy())
+        return self.robot.ground_truth(self.data)

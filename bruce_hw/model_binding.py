@@ -1,5 +1,6 @@
-"""Where the robot config's joints live in a MuJoCo model (`JointBinding`): one lookup, by name, that the mock, the
-transfer stage's nominal models and the training model share, instead of each reading another's private indices.
+"""Where the robot config's joints live in a MuJoCo model (`JointBinding`): one lookup, by name, held by BRUCE's
+model (`bruce_hw.robot_model.BruceModel`) that the mock, the transfer stage's nominal models and the training model
+build, instead of each reading another's private indices.
 
 A joint named in `joints.names` must be a joint of the model with exactly one joint-transmission actuator (its
 motor), and the config's joints must be contiguous in qpos, qvel and the actuators, in the config's order, so that

@@ -87,8 +87,8 @@ def _private_members_of_the_mock() -> set[str]:
 
 
 def test_no_module_outside_the_mock_reads_its_private_state():
-    """The transfer stage, the RL environment and the tools use the mock's public model binding and methods
-    (`binding`, `model`, `data`, `measure`, `place`); a subclass may use its own `self._...`."""
+    """The tools use the mock's public model and methods (`robot`, `binding`, `model`, `data`, `measure`, `place`);
+    the transfer stage and the RL environment build their own `BruceModel`; a subclass may use its own `self._...`."""
     private = _private_members_of_the_mock()
     assert {"_qpos", "_dofs", "_acts"} <= private  # the walker finds them
     found = []
@@ -101,3 +101,25 @@ def test_no_module_outside_the_mock_reads_its_private_state():
                         not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls")):
                     found.append(f"{path.relative_to(ROOT)}:{node.lineno} .{node.attr}")
     assert not found, "\n".join(found)
+
+
+# Where a whole mock backend is made: the backend table, the emulated robot's plant, and the tools that run whole
+# sessions on it (evaluation, distillation, benches of runs). A user that needs only BRUCE's model, its indices or the
+# standing placement builds `bruce_hw.robot_model.BruceModel`.
+MOCK_MAKERS = {"bruce_hw/mock.py", "bruce_hw/backends.py", "bruce_hw/emulated_plant.py", "training/distill.py",
+               "bench/bench_walking_controllers.py", "bench/bench_robot_transfer_cost.py"}
+
+
+def test_nothing_makes_a_mock_backend_just_for_its_model():
+    found = []
+    for layer in (*LAYERS, "bench"):
+        for path in (ROOT / layer).rglob("*.py"):
+            where = path.relative_to(ROOT).as_posix()
+            if where in MOCK_MAKERS or where.startswith("training/evaluation/"):
+                continue
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.Call) and getattr(node.func, "id", getattr(node.func, "attr", None)) \
+                        == "MujocoBackend":
+                    found.append(f"{where}:{node.lineno}")
+    assert not found, "MujocoBackend(...) outside the places that run it (build a BruceModel instead):\n" + \
+        "\n".join(found)

@@ -17,6 +17,7 @@ import mujoco
 import numpy as np
 
 from bruce_hw.config import PdGains, RobotConfig
+from bruce_hw.robot_model import BruceModel
 
 PD_ZERO_RATIO = 3.0  # Kp = Kd wc / PD_ZERO_RATIO: the PD's zero this many times below the crossover
 
@@ -34,15 +35,13 @@ _INERTIA: dict[tuple[Path, tuple[str, ...]], np.ndarray] = {}  # per model file:
 
 
 def _smallest_inertia(config: RobotConfig) -> np.ndarray:
-    from bruce_hw.mock import MujocoBackend  # places the standing pose and knows the joints' dof addresses
-
-    nominal = MujocoBackend(config)
-    nominal.configure()
-    model, data = nominal.model, nominal.data
+    robot = BruceModel(config)  # knows the joints' dof addresses and places the standing pose
+    model, data = robot.model, robot.new_data()
+    robot.place_standing(data)
     mass = np.zeros((model.nv, model.nv))
     mujoco.mj_fullM(model, data, mass)
     inverse = np.linalg.inv(mass)
-    dofs = nominal.binding.dofs
+    dofs = robot.dofs
     inertia = 1.0 / np.diag(inverse)[dofs]
     inertia.setflags(write=False)
     return inertia

@@ -35,7 +35,7 @@ from runtime.estimation import BaseEstimate, GroundTruthEstimator
 from runtime.estimation.kinematic import EstimatorSnapshot, KinematicEstimator
 from runtime.mixing import eq8_torque
 from runtime.safety import SafetyStage
-from runtime.transfer.reference_models import foot_spheres, nominal_model, place_from_estimate, set_state
+from runtime.transfer.reference_models import foot_spheres, nominal_model, place_from_estimate
 
 
 @dataclass(slots=True)
@@ -55,15 +55,16 @@ class TwinInput:
 class NominalTwin:
     """The nominal model under the nominal controller, resynchronised to the robot whenever it is told to."""
 
+    name = "nominal twin"  # for GroundTruthEstimator, which reads the twin's truth as a backend's
+
     def __init__(self, config: RobotConfig, controller):
-        nominal = nominal_model(config)
-        self.backend = nominal  # its `measure` reads the twin's clean sensors
-        self.model, self.data = nominal.model, nominal.data
-        self._qpos, self._dofs, self._acts = nominal.binding.qpos, nominal.binding.dofs, nominal.binding.acts
+        robot, self.data = nominal_model(config)
+        self.robot, self.model = robot, robot.model  # `robot.measure(data)`: the twin's clean sensors
+        self._qpos, self._dofs, self._acts = robot.qpos, robot.dofs, robot.acts
         self._spheres = foot_spheres(self.model)
         self.controller = controller
         self.estimator = KinematicEstimator(config)
-        self.truth = GroundTruthEstimator(nominal)  # the twin's own truth, for truth-fed runs
+        self.truth = GroundTruthEstimator(self)  # the twin's own truth (`ground_truth`), for truth-fed runs
         self.safety = SafetyStage(config)
         self.eq8 = config.eq8
         self.decimation = config.policy_decimation
@@ -73,7 +74,7 @@ class NominalTwin:
 
     def reset(self) -> None:
         # Standing on the floor, as the robot starts: the first resync keeps this contact depth.
-        self.backend.place(self.standing_pose)
+        self.robot.place_standing(self.data, self.standing_pose)
         self.safety.reset()
         self.tick = -1
         self.from_truth = False   # the last resync was from the simulator's truth (diagnostic runs)
@@ -91,20 +92,19 @@ class NominalTwin:
         resync = step.resync
         if resync is not None:
             if isinstance(resync, GroundTruth):
-                set_state(data, self._qpos, self._dofs, resync, step.q, step.qd)
+                self.robot.set_truth(data, resync, step.q, step.qd)
                 mujoco.mj_forward(self.model, data)
             else:
                 own = None
                 if not first and not self.from_truth and self.differential:
-                    self.estimator.update(self.backend.measure())  # the twin's own estimate at this tick
+                    self.estimator.update(self.robot.measure(data))  # the twin's own estimate at this tick
                     own = self.estimator.estimate()
-                place_from_estimate(self.model, data, self._qpos, self._dofs, resync.estimate, step.q, step.qd,
-                                    self._spheres, own)
+                place_from_estimate(self.robot, data, resync.estimate, step.q, step.qd, self._spheres, own)
                 self.estimator.restore(resync, float(data.time))
             self.from_truth = isinstance(resync, GroundTruth)
             if step.sent is not None:
                 self.safety.previous = np.array(step.sent, dtype=float)
-        state = self.backend.measure()
+        state = self.robot.measure(data)
         if first:
             self.controller.reset(state.joints.q)
         if resync is None and not self.from_truth:  # a resync tick's measurement is in the robot's estimate already
@@ -124,6 +124,10 @@ class NominalTwin:
         data.ctrl[self._acts] = tau
         mujoco.mj_step(self.model, data)
         self.q = data.qpos[self._qpos].copy()
+
+    def ground_truth(self) -> GroundTruth:
+        """The twin's own simulator truth (what `GroundTruthEstimator` reads of a backend)."""
+        return self.robot.ground_truth(self.data)
 
     def _base(self) -> BaseEstimate:
         """What the twin's controller sees of its base: its own estimator, or (truth-fed runs) its own truth."""

@@ -24,6 +24,7 @@ import numpy as np
 
 from bruce_hw.config import RobotConfig
 from bruce_hw.quaternion import euler_of, roll_pitch_quaternion, rotation_entries
+from bruce_hw.robot_model import BruceModel
 from bruce_hw.types import GroundTruth
 from runtime.estimation import BaseEstimate
 from runtime.estimation.kinematic import FEET
@@ -41,31 +42,23 @@ class ReferenceModel(Protocol):
     def step(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
 
-def nominal_model(config: RobotConfig):
-    """A configured nominal mock (no reality gap): the simulator's model, which a reference or the twin sets to the
-    robot's state and steps (its configure() finds the joints, motors and sensors and checks the MJCF)."""
-    from bruce_hw.mock import MujocoBackend
+def nominal_model(config: RobotConfig) -> tuple[BruceModel, mujoco.MjData]:
+    """The simulator's model without a reality gap (`BruceModel`: it checks the MJCF and finds the joints, motors and
+    sensors) and a state of it standing on the floor, as the mock starts: what a reference or the twin sets to the
+    robot's state and steps."""
+    robot = BruceModel(config)
+    data = robot.new_data()
+    robot.place_standing(data)
+    return robot, data
 
-    nominal = MujocoBackend(config)
-    nominal.configure()
-    return nominal
 
-
-def nominal_backend(config: RobotConfig, base_state: Callable[[], GroundTruth | None], refusal: str):
+def nominal_model_on_truth(config: RobotConfig, base_state: Callable[[], GroundTruth | None],
+                           refusal: str) -> tuple[BruceModel, mujoco.MjData]:
     """`nominal_model`, for a user of the simulator's state: ModelError with `refusal` where there is none to start
     from (any backend but the mock, or a robot-faithful run)."""
     if base_state() is None:
         raise ModelError(refusal)
     return nominal_model(config)
-
-
-def set_state(data: mujoco.MjData, qpos: slice, dofs: slice, base: GroundTruth, q: np.ndarray,
-              qd: np.ndarray) -> None:
-    """Put the nominal model at the simulator's base state and the given joint state (`qpos`, `dofs`: the joints'
-    slices in qpos and qvel)."""
-    data.qpos[0:3], data.qpos[3:7] = base.base_pos, base.base_quat
-    data.qvel[0:3], data.qvel[3:6] = base.base_linvel, base.base_angvel
-    data.qpos[qpos], data.qvel[dofs] = q, qd
 
 
 def foot_spheres(model: mujoco.MjModel) -> list[tuple[int, float]]:
@@ -79,9 +72,8 @@ def lowest_point(data: mujoco.MjData, spheres: list[tuple[int, float]]) -> float
     return min(float(xpos[geom][2]) - radius for geom, radius in spheres)
 
 
-def place_from_estimate(model: mujoco.MjModel, data: mujoco.MjData, qpos: slice, dofs: slice,
-                        estimate: BaseEstimate, q: np.ndarray, qd: np.ndarray,
-                        spheres: list[tuple[int, float]], own: BaseEstimate | None = None) -> None:
+def place_from_estimate(robot: BruceModel, data: mujoco.MjData, estimate: BaseEstimate, q: np.ndarray,
+                        qd: np.ndarray, spheres: list[tuple[int, float]], own: BaseEstimate | None = None) -> None:
     """Put the nominal model at what a robot knows of itself: the joints as measured; roll, pitch and the base's
     angular and linear velocity (body frame) from the robot's estimate; yaw and planar position stay the model's own
     (nothing on the robot observes them), and the height is set so that the lowest toe or heel (`spheres`, from
@@ -107,12 +99,12 @@ def place_from_estimate(model: mujoco.MjModel, data: mujoco.MjData, qpos: slice,
     cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
     quat = (cy * w - sy * z, cy * x - sy * y, cy * y + sy * x, cy * z + sy * w)  # q_z(yaw) q_y(pitch) q_x(roll)
     data.qpos[3:7] = quat
-    data.qpos[qpos], data.qvel[dofs] = q, qd
+    data.qpos[robot.qpos], data.qvel[robot.dofs] = q, qd
     data.qvel[3:6] = angvel  # a free joint's angular velocity is in the body frame, as the estimate's
     data.qvel[0:3] = np.array(rotation_entries(quat)).reshape(3, 3) @ linvel
-    mujoco.mj_kinematics(model, data)
+    mujoco.mj_kinematics(robot.model, data)
     data.qpos[2] += depth - lowest_point(data, spheres)
-    mujoco.mj_forward(model, data)
+    mujoco.mj_forward(robot.model, data)
 
 
 class PinnReference:
@@ -139,11 +131,10 @@ class NominalReference:
     pinn = None
 
     def __init__(self, config: RobotConfig, base_state: Callable[[], BaseEstimate | GroundTruth | None]):
-        nominal = nominal_model(config)
-        self._nominal, self._standing_pose = nominal, config.standing_pose
-        self.model, self.data = nominal.model, nominal.data
-        # The backend's own index slices of the config's joints in qpos, qvel and ctrl (checked contiguous there).
-        self._qpos, self._dofs, self._acts = nominal.binding.qpos, nominal.binding.dofs, nominal.binding.acts
+        robot, self.data = nominal_model(config)
+        self.robot, self.model = robot, robot.model
+        # The model's own index slices of the config's joints in qpos, qvel and ctrl (checked contiguous there).
+        self._qpos, self._dofs, self._acts = robot.qpos, robot.dofs, robot.acts
         self._spheres = foot_spheres(self.model)
         self._coupling = config.coupling
         self._torque_limit = config.actuator_torque_limit
@@ -151,7 +142,7 @@ class NominalReference:
         self._last: tuple[np.ndarray, np.ndarray] | None = None  # what step returned last, to recognise a rollout
 
     def reset(self) -> None:
-        self._nominal.place(self._standing_pose)  # on the floor, as the robot starts: its contact depth is kept
+        self.robot.place_standing(self.data)  # on the floor, as the robot starts: its contact depth is kept
         self._last = None
 
     def step(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -165,9 +156,9 @@ class NominalReference:
             if base is None:
                 raise ModelError("nominal reference model: no base state (the simulator's truth is gone)")
             if isinstance(base, GroundTruth):
-                set_state(data, self._qpos, self._dofs, base, q, qd)
+                self.robot.set_truth(data, base, q, qd)
             else:
-                place_from_estimate(self.model, data, self._qpos, self._dofs, base, q, qd, self._spheres)
+                place_from_estimate(self.robot, data, base, q, qd, self._spheres)
         data.ctrl[self._acts] = self._coupling.saturate(tau, self._torque_limit)
         mujoco.mj_step(self.model, data)
         self._last = (data.qpos[self._qpos].copy(), data.qvel[self._dofs].copy())

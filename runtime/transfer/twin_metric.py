@@ -25,7 +25,7 @@ from bruce_hw.config import RobotConfig
 from runtime.mixing import eq8_torque
 from runtime.observers import TRACKING_SKIP_S, TickObserver, TickView
 from runtime.safety import SafetyStage, SafetyState
-from runtime.transfer.reference_models import nominal_backend, set_state
+from runtime.transfer.reference_models import nominal_model_on_truth
 
 
 class TwinMetric(TickObserver):
@@ -36,10 +36,11 @@ class TwinMetric(TickObserver):
         self.squared_error_sum: np.ndarray | None = None
 
     def on_start(self, backend: Backend, config: RobotConfig) -> None:
-        nominal = nominal_backend(config, backend.ground_truth, f"twin metric: needs the simulator's state, which "
-                                  f"the {backend.name} backend does not have (mock only)")
-        self.model, self.data = nominal.model, nominal.data
-        self._qpos, self._dofs, self._acts = nominal.binding.qpos, nominal.binding.dofs, nominal.binding.acts
+        robot, self.data = nominal_model_on_truth(
+            config, backend.ground_truth, f"twin metric: needs the simulator's state, which the {backend.name} "
+            "backend does not have (mock only)")
+        self.robot, self.model = robot, robot.model
+        self._qpos, self._dofs, self._acts = robot.qpos, robot.dofs, robot.acts
         self.eq8, self.coupling, self.torque_limit = config.eq8, config.coupling, config.actuator_torque_limit
         if self.window_ticks is None:
             self.window_ticks = config.policy_decimation
@@ -62,7 +63,7 @@ class TwinMetric(TickObserver):
                 error = data.qpos[self._qpos] - truth.joint_q
                 self.squared_error_sum += error * error
                 self.windows += 1
-            set_state(data, self._qpos, self._dofs, truth, truth.joint_q, truth.joint_qd)
+            self.robot.set_truth(data, truth, truth.joint_q, truth.joint_qd)
             self.safety.previous = self._last_sent.copy()
             self._synced = True
         np.copyto(self._last_sent, view.tau)

@@ -23,8 +23,8 @@ import numpy as np
 from mujoco import rollout
 
 from bruce_hw.config import ConfigError, RobotConfig
-from bruce_hw.mock import CONTACT_THRESHOLD_N
 from bruce_hw.quaternion import euler_rows, quaternion_rows, rotation_entries
+from bruce_hw.robot_model import CONTACT_THRESHOLD_N, standing_height
 from bruce_hw.yaml_reader import Bound, YamlReader
 from runtime.commands import COMMAND_LIMITS
 from runtime.falls import fallen
@@ -481,11 +481,5 @@ class BruceWalkEnv:
 
     def _standing_height(self, q: np.ndarray) -> float:
         """Base height at which the lower sole touches the floor with the base level and the legs at q (the mock's
-        placement)."""
-        kin = self._kin
-        kin.qpos[:] = self.sim.model.qpos0
-        kin.qpos[:3] = 0.0
-        kin.qpos[3:7] = (1.0, 0.0, 0.0, 0.0)
-        kin.qpos[self.sim.qpos] = q
-        mujoco.mj_kinematics(self.sim.model, kin)
-        return float(-min(kin.site_xpos[s][2] for s in self._soles))
+        placement, `bruce_hw.robot_model.standing_height`, on the training model)."""
+        return standing_height(self.sim.model, self._kin, self.sim.qpos, self._soles, q)

@@ -16,13 +16,12 @@ import mujoco
 import numpy as np
 
 from bruce_hw.config import RobotConfig
-from bruce_hw.mock import IMU_SENSORS, MujocoBackend
 from bruce_hw.model_binding import bind_joints
+from bruce_hw.robot_model import BASE_BODY, IMU_SENSORS, SOLE_SITES, TOUCH_SENSORS, BruceModel
 from runtime.walking.leg_ik import SIDES
 
-FOOT_SITES = tuple(f"{side}_sole" for side in SIDES)          # the mock's soles: foot position and velocity
+FOOT_SITES = SOLE_SITES                                       # the soles: foot position and velocity
 KNEE_JOINTS = tuple(f"{side}_knee" for side in SIDES)         # knee position: the origin of the knee joint's body
-TOUCH_SENSORS = tuple(f"{side}_{end}" for side in SIDES for end in ("toe", "heel"))  # the mock's contact switches
 FLOOR_GEOM = "floor"
 # The arrays of the model a randomisation draw changes; kept at their nominal values to start each draw from.
 RANDOMISED_FIELDS = ("body_mass", "body_inertia", "dof_frictionloss", "dof_damping", "dof_armature", "geom_friction",
@@ -47,7 +46,7 @@ class SimModel:
     kd: np.ndarray
     torque_limit: np.ndarray         # N·m, joints.torque_limits
     standing_pose: np.ndarray
-    nominal_base_height: float       # the mock's: base height with the legs in the standing pose, soles on the floor
+    nominal_base_height: float       # the mock's (`BruceModel.standing_height`): legs standing, soles on the floor
     nominal: dict[str, np.ndarray]   # RANDOMISED_FIELDS at their nominal values
 
     @property
@@ -79,18 +78,16 @@ def _span(model: mujoco.MjModel, names: list[str]) -> slice:
 
 
 def build_sim_model(config: RobotConfig) -> SimModel:
-    """The training model for `config`; the joint, sensor and contact layout is checked by the mock's own
-    configure (the same MJCF)."""
-    mock = MujocoBackend(config)
-    mock.configure()  # checks the MJCF against the config; gives the joint addresses and the standing height
+    """The training model for `config`; the joint, sensor and contact layout is checked by the robot's model
+    (`BruceModel`, the mock's: the same MJCF)."""
+    robot = BruceModel(config)  # checks the MJCF against the config; gives the joints' motors and the standing height
     spec = mujoco.MjSpec.from_file(str(config.mjcf))
     for sensor in list(spec.sensors):
         if sensor.name in IMU_SENSORS:  # the environment observes the truth, as GroundTruthEstimator does
             spec.delete(sensor)
     kp, kd, limit = config.eq8.kp, config.eq8.kd, config.tau_limit
-    nominal = mock.model
-    motors = [next(nominal.actuator(a).name for a in range(nominal.nu)
-                   if nominal.actuator_trnid[a, 0] == nominal.joint(j).id) for j in config.joints]  # the mock checked
+    nominal = robot.model
+    motors = robot.motors
     for i, name in enumerate(motors):
         _pd_actuator(spec.actuator(name), float(kp[i]), float(kd[i]), float(limit[i]))
     sens = mujoco.mjtSensor
@@ -114,12 +111,12 @@ def build_sim_model(config: RobotConfig) -> SimModel:
     binding = bind_joints(model, config.joints, str(config.mjcf))  # the PD actuators are the joints' motors still
     return SimModel(
         model=model, qpos=binding.qpos, dofs=binding.dofs, acts=binding.acts,
-        base_body=model.body("base").id, floor_geom=model.geom(FLOOR_GEOM).id, foot_geoms=foot_geoms,
+        base_body=model.body(BASE_BODY).id, floor_geom=model.geom(FLOOR_GEOM).id, foot_geoms=foot_geoms,
         foot_pos=_span(model, [f"{s}_pos" for s in FOOT_SITES]),
         foot_vel=_span(model, [f"{s}_vel" for s in FOOT_SITES]),
         knee_pos=_span(model, [f"{b}_pos" for b in knee_bodies]),
         touch=_span(model, list(TOUCH_SENSORS)),
         tau=_span(model, [f"{name}_tau" for name in motors]),
         kp=kp.copy(), kd=kd.copy(), torque_limit=limit.copy(), standing_pose=config.standing_pose.copy(),
-        nominal_base_height=mock.nominal_base_height,
+        nominal_base_height=robot.standing_height(),
         nominal={name: getattr(model, name).copy() for name in RANDOMISED_FIELDS})

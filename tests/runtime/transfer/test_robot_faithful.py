@@ -124,21 +124,21 @@ def test_the_twin_on_its_own_thread_gives_the_same_torques(config, monkeypatch):
 def test_resync_from_the_estimate_keeps_the_contact_depth(config):
     """Roll, pitch and velocities from the estimate, the height set so the lowest sphere keeps its depth; yaw and
     planar position stay the model's own."""
-    nominal = nominal_model(config)
-    model, data = nominal.model, nominal.data
+    robot, data = nominal_model(config)
+    model = robot.model
     spheres = foot_spheres(model)
     for _ in range(300):  # settle into contact
-        data.ctrl[nominal._acts] = 0.0
+        data.ctrl[robot.acts] = 0.0
         mujoco.mj_step(model, data)
     depth, xy, yaw = lowest_point(data, spheres), data.qpos[0:2].copy(), data.qpos[3:7].copy()
     rng = np.random.default_rng(0)
     q = config.standing_pose + rng.normal(0.0, 0.05, config.n_joints)
     estimate = BaseEstimate(quat=np.array([1.0, 0, 0, 0]), linvel=np.array([0.3, -0.05, 0.0]),
                             angvel=np.array([0.1, 0.0, -0.2]), euler=np.array([0.05, -0.08, 1.0]))
-    place_from_estimate(model, data, nominal._qpos, nominal._dofs, estimate, q, np.zeros(config.n_joints), spheres)
+    place_from_estimate(robot, data, estimate, q, np.zeros(config.n_joints), spheres)
     assert lowest_point(data, spheres) == pytest.approx(depth, abs=1e-9)
     np.testing.assert_allclose(data.qpos[0:2], xy)
-    np.testing.assert_allclose(data.qpos[nominal._qpos], q)
+    np.testing.assert_allclose(data.qpos[robot.qpos], q)
     w, x, y, z = data.qpos[3:7]
     roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
     pitch = np.arcsin(2 * (w * y - z * x))
