@@ -14,13 +14,12 @@ import json
 import math
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
-from support.emulated_robot import WALL_CLOCK_SLACK
+from support.emulated_robot import WALL_CLOCK_SLACK, drive_torques
 
-from bruce_hw import BackendError, JointCommand, LifecycleState
+from bruce_hw import BackendError, LifecycleState
 from bruce_hw.attitude import MahonyAttitude
 from bruce_hw.bear_legs import actuator_position_limits
 from bruce_hw.config import load_config
@@ -191,14 +190,8 @@ def test_can_legs_compose_with_the_virtual_bus():
         backend = HwBackend(config, check_imu=False, switch_interval_s=None)
         backend.configure()
         try:
-            backend.activate()
-            tau = np.array([0.5, 1.0, -1.0, 0.5, 0.2, -0.5, 1.0, -1.0, -0.5, -0.2])
-            for _ in range(20):
-                state = backend.read()
-                backend.write(JointCommand(tau_ff=tau))
-                time.sleep(0.001)
+            tau, state = drive_torques(backend)
             assert np.all(np.isfinite(state.joints.q))
-            backend.read()  # sends the last command
             sent = [robot.can[m.channel].command(m.id).torque for m in config.buses.can.motors]
             np.testing.assert_allclose(sent, config.coupling.actuator_torques(tau), atol=0.02)
             backend.fault("test")

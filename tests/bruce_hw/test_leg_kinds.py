@@ -11,8 +11,8 @@ import time
 
 import numpy as np
 import pytest
+from support.emulated_robot import drive_torques
 
-from bruce_hw import JointCommand
 from bruce_hw.bus_report import BusReport
 from bruce_hw.bus_startup import StartupError
 from bruce_hw.config import RobotConfig, load_config
@@ -211,14 +211,8 @@ def test_a_registered_kind_is_built_driven_and_diagnosed(ideal_kind):
         assert isinstance(backend.legs, IdealLegs)
         backend.configure()
         try:
-            backend.activate()
-            tau = np.array([0.5, 1.0, -1.0, 0.5, 0.2, -0.5, 1.0, -1.0, -0.5, -0.2])
-            for _ in range(20):
-                state = backend.read()
-                backend.write(JointCommand(tau_ff=tau))
-                time.sleep(0.001)
+            tau, state = drive_torques(backend)
             assert np.all(np.isfinite(state.joints.q))
-            backend.read()  # sends the last command
             np.testing.assert_allclose(wire.commanded, config.coupling.actuator_torques(tau), atol=1e-9)
             assert not robot.plant.held  # enabled by the kind's law: the physics runs
             backend.fault("test")

@@ -13,3 +13,26 @@ WALL_CLOCK_SLACK = ["safety.min_rate_hz=50", "safety.rate_window_s=1.0", "safety
                     "buses.bear.reply_timeout_s=0.02", "buses.bear.watchdog_s=0.1", "safety.host_stall_max_s=0.09"]
 BEAR_IDS = tuple(range(1, 11))
 DXL_IDS = tuple(range(11, 17))
+
+# A torque pattern with every joint's sign and size different, so a mixed-up joint or coupling shows
+TEST_TORQUES = (0.5, 1.0, -1.0, 0.5, 0.2, -0.5, 1.0, -1.0, -0.5, -0.2)
+
+
+def drive_torques(backend, ticks: int = 20):
+    """Activate an in-process hw backend and send TEST_TORQUES for `ticks` ticks; the joint torques sent and the last
+    state read. The read after the last write sends it (the bus thread posts on read)."""
+    import time
+
+    import numpy as np
+
+    from bruce_hw import JointCommand
+
+    tau = np.array(TEST_TORQUES)
+    backend.activate()
+    state = None
+    for _ in range(ticks):
+        state = backend.read()
+        backend.write(JointCommand(tau_ff=tau))
+        time.sleep(0.001)
+    backend.read()
+    return tau, state
