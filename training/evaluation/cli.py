@@ -1,7 +1,7 @@
 """`bruce-eval`: evaluate learned dynamics models (`dynamics`, `dynamics_cli.py`), rehearse their sim-to-real
 transfer (`transfer`, `transfer_eval.py`), run a walking controller on the command grid (`walking`,
 `walking_eval.py`), set walking policies side by side under reality gaps (`policies`, `policy_table.py`) and
-replay a recorded run against the simulator and the PINN (`replay`, `replay.py`).
+replay a recorded run against the simulator and the PINN (`replay`, `replay_cli.py`).
 
 Each command adds its sub-parser (`add_parser`) and runs from its own module; this one only dispatches. None of them
 imports torch at import time, so that `bruce-eval transfer` (onnxruntime and MuJoCo only) runs on the base install:
@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from training.evaluation import dynamics_cli, policy_table, replay, transfer_eval, walking_eval
+from training.evaluation import dynamics_cli, policy_table, replay_cli, transfer_eval, walking_eval
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -25,7 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     transfer_eval.add_parser(commands)
     walking_eval.add_parser(commands)
     policy_table.add_parser(commands)
-    replay.add_parser(commands)
+    replay_cli.add_parser(commands)
     return parser
 
 
@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "policies":
         return policy_table.run_policies(args)
     if args.command == "replay":
-        return replay.run_replay(args, argv)
+        return replay_cli.run_replay(args, argv)
     return dynamics_cli.main_dynamics(args, argv)  # imports torch
 
 
