@@ -31,7 +31,7 @@ import torch
 from runtime.inference import OnnxPinn, session_options
 from training.dynamics.export import export_pinn_onnx
 from training.dynamics.pinn import PinnStep, make_random_pinn
-from training.evaluation.dynamics_eval import timed_calls
+from training.evaluation.dynamics_timing import timed_calls
 
 P99_GOAL_US = 100.0
 SPEEDUP_GOAL = 10.0

@@ -24,7 +24,7 @@ from bruce_hw.coupling import Coupling
 from bruce_hw.yaml_reader import Bound, YamlReader, apply_overrides, bound_lookup, read_yaml
 from drivers.bear_registers import CONFIG_REGISTERS as BEAR_CONFIG_REGISTERS
 from drivers.bear_registers import RATED_CURRENT_A
-from drivers.can_motor import MitRanges  # the MIT frame ranges: one type for the config and the driver
+from drivers.can_motor_codec import MitRanges  # the MIT frame ranges: one type for the config and the driver
 
 DEFAULT_CONFIG = "configs/robots/bruce.yaml"
 # The BEAR's watchdog_timeout unit is undocumented: this is assumed until `bruce-hw-check --probe-watchdog` measures

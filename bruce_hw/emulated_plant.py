@@ -26,7 +26,7 @@ from bruce_hw.leg_kinds import leg_kind_of
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.types import GroundTruth, JointCommand
 from drivers.emulators.bear import EventLog
-from drivers.sense import FIRMWARE_GRAVITY
+from drivers.sense_codec import FIRMWARE_GRAVITY
 
 if TYPE_CHECKING:
     from bruce_hw.leg_kind import LegEmulation

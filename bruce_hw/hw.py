@@ -32,7 +32,7 @@ from bruce_hw.host_witness import HostWitness
 from bruce_hw.leg_bus import LegBus, LegReading, LegStartup
 from bruce_hw.leg_kinds import leg_kind_of
 from bruce_hw.types import FootContacts, ImuSample, JointCommand, JointState, RobotState
-from drivers.sense import FIRMWARE_GRAVITY
+from drivers.sense_codec import FIRMWARE_GRAVITY
 
 log = logging.getLogger("bruce_hw.hw")
 

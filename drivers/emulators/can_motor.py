@@ -1,4 +1,4 @@
-"""MIT-mode CAN motors (mini cheetah protocol, see drivers/can_motor.py) on a python-can bus.
+"""MIT-mode CAN motors (mini cheetah protocol, see drivers/can_motor_codec.py) on a python-can bus.
 
 `CanMotorEmulator(channel, motor_ids)` hosts motors that behave like the reference firmware: each listens to
 standard frames whose arbitration ID is its motor ID (others are ignored, as on a shared bus) and answers every one
@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.can_motor import (
+from drivers.can_motor_codec import (
     AK80_9_V1P1,
     COMMAND_LENGTH,
     MitCommand,

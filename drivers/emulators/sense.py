@@ -23,7 +23,7 @@ import numpy as np
 
 from drivers.emulators.pty_device import PtyDevice
 from drivers.emulators.reply_delay import ReplyDelay, wait_until
-from drivers.sense import (
+from drivers.sense_codec import (
     COMMAND_LEN,
     COMMAND_REST_LEN,
     FIRMWARE_GRAVITY,

@@ -10,13 +10,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bruce_hw.config import ConfigError, load_config
-from drivers.can_motor import (
+from drivers.can_motor import CanMotorBus, CanMotorGroup
+from drivers.can_motor_codec import (
     AK80_9_V1P1,
     ENTER_MOTOR_MODE,
     EXIT_MOTOR_MODE,
     SET_ZERO,
-    CanMotorBus,
-    CanMotorGroup,
     MitCommand,
     MitRanges,
     ReplyDecoder,

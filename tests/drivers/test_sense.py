@@ -12,10 +12,10 @@ from hypothesis import strategies as st
 
 from drivers.emulators.sense import ACCEL_SCALE, GYRO_SCALE, SenseBoardEmulator
 from drivers.errors import BusTimeout, DriverError, LinkStats
-from drivers.sense import (
+from drivers.sense import SenseBoard
+from drivers.sense_codec import (
     PACKET_LEN,
     PicoMode,
-    SenseBoard,
     SenseParser,
     check_packet,
     decode_command,

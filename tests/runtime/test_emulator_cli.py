@@ -13,7 +13,7 @@ from bruce_hw.emulator_process import EmulatorProcess, parse_event, reply_time
 from drivers.bear import BearBus, encode_ping
 from drivers.dynamixel_codec import INST_PING, encode_packet
 from drivers.errors import BusTimeout
-from drivers.sense import encode_command
+from drivers.sense_codec import encode_command
 from runtime.emulate_cli import execute, status
 
 

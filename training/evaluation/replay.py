@@ -1,5 +1,6 @@
-"""`bruce-eval replay --log DIR`: a recorded run (`bruce-run --record DIR`, runtime/recorder.py) against the nominal
-simulator and the PINN: the paper's Fig. 6 comparison for that run (docs/replay.md).
+"""`bruce-eval replay`'s analysis: a recorded run (`bruce-run --record DIR`, runtime/recorder.py, read by `load_log`)
+against the nominal simulator and the PINN, the numbers of the paper's Fig. 6 comparison for that run
+(docs/replay.md). The command is `training.evaluation.replay_cli`, the figure and the tables `replay_report`.
 
 1. Closed loop: the nominal mock (no gap, Eq. 8 alone) runs the log's controller on the log's own command sequence
    (`LoggedCommands`) for as many ticks, from the pose the run started from, through the runtime's loop, and is
@@ -10,30 +11,22 @@ simulator and the PINN: the paper's Fig. 6 comparison for that run (docs/replay.
    as the live gap monitor runs it; it needs the base state, which only a simulator's log has) predict for the next
    tick, against the next logged sample: per-joint RMSE.
 3. The live gap monitor's residual, where the run had a reference model and logged it.
-
-Output: DIR/replay.json (every figure), DIR/replay.md (the tables), DIR/fig6_replay.png.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from bruce_hw.config import ConfigError, RobotConfig
+from bruce_hw.config import RobotConfig
 from bruce_hw.types import GroundTruth
-from runtime.recorder import LOG_FORMAT, LOG_VERSION, META_FILE, RunRecorder, describe_run, file_sha256
-from runtime.robot_config import load_config
-from training.evaluation.report import json_safe
+from runtime.recorder import LOG_FORMAT, LOG_VERSION, META_FILE, RunRecorder, describe_run
 from training.evaluation.transfer_metrics import joint_rmse, offset_and_shape
 
-SIMULATION_DIR = "simulation"
-FIGURE = "fig6_replay.png"
 WINDOW_S = 1.0          # the traces' window, as the paper's Fig. 6 (bruce-eval transfer shows 10 to 11 s)
 WINDOW_START_S = 10.0
 
@@ -287,7 +280,7 @@ def gap_monitor_figures(log: RunLog) -> dict | None:
             "rms_qd_per_joint": dict(zip(names, rms_qd.tolist(), strict=True))}
 
 
-# -- the report ---------------------------------------------------------------------------------------------------
+# -- for the report ------------------------------------------------------------------------------------------------
 def forward_velocity(log: RunLog) -> np.ndarray | None:
     """The base's forward velocity in its heading frame (simulator logs: from the truth), every 10th row."""
     if not log.has("base_linvel"):
@@ -305,259 +298,3 @@ def window_of(t: np.ndarray, window: tuple[float, float] | None) -> np.ndarray:
         start = min(WINDOW_START_S, max(0.0, float(t[-1]) - WINDOW_S))
         window = (start, start + WINDOW_S)
     return (t >= window[0]) & (t < window[1])
-
-
-def plot(path: Path, robot: RunLog, simulation: RunLog, predicted: dict[str, np.ndarray], report: dict,
-         joint: int, window: tuple[float, float] | None) -> None:
-    """Fig. 6 for a recorded run: joint `joint`'s angle, velocity and torque and its phase portrait, robot against
-    the simulation (and the one-step predictions), the per-joint RMSE, the one-step velocity residual."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    name = robot.joints[joint]
-    a, b = aligned(robot, simulation)
-    shown = window_of(a.t, window)
-    fig, axes = plt.subplots(2, 4, figsize=(20, 8))
-    runs = (("robot (log)", "k", a), ("simulator (closed loop)", "tab:blue", b))
-    colours = {"pinn": "tab:red", "nominal": "tab:green"}
-    one_step_rows = window_of(robot.t, window)
-    for label, colour, run in runs:
-        kw = {"color": colour, "label": label, "lw": 0.9}
-        axes[0, 0].plot(run.t[shown], run.q[shown, joint], **kw)
-        axes[0, 1].plot(run.t[shown], run.qd[shown, joint], **kw)
-        axes[0, 2].plot(run.t[shown], run.tau[shown, joint], **kw)
-        axes[0, 3].plot(run.q[shown, joint], run.qd[shown, joint], **kw)
-    for model, values in predicted.items():
-        kw = {"color": colours[model], "lw": 0.7, "ls": "--", "label": f"{model}, one step along the log"}
-        axes[0, 0].plot(robot.t[one_step_rows], values[one_step_rows, 0, joint], **kw)
-        axes[0, 1].plot(robot.t[one_step_rows], values[one_step_rows, 1, joint], **kw)
-    titles = (f"{name} angle (rad)", f"{name} velocity (rad/s)", f"{name} torque written (N m)",
-              f"{name} phase portrait (rad, rad/s)")
-    for ax, title in zip(axes[0], titles, strict=True):
-        ax.set_title(title)
-        ax.legend(fontsize=7)
-    x = np.arange(len(robot.joints))
-    closed = report["closed_loop"]
-    axes[1, 0].bar(x, list(closed["joint_rmse_per_joint"].values()), color="tab:blue")
-    axes[1, 0].set_title(f"joint RMSE, robot vs simulator (rad); mean {closed['joint_rmse']:.4g}")
-    bars = {model: report["one_step"][model] for model in predicted if report["one_step"][model].get("transitions")}
-    gap = report.get("gap_monitor")
-    if gap and gap.get("samples"):
-        bars["live gap monitor"] = {"rmse_qd_per_joint": gap["rms_qd_per_joint"]}
-    width = 0.8 / max(len(bars), 1)
-    for i, (label, entry) in enumerate(bars.items()):
-        axes[1, 1].bar(x + (i - (len(bars) - 1) / 2) * width, list(entry["rmse_qd_per_joint"].values()), width,
-                       color=colours.get(label, "tab:purple"), label=label)
-    axes[1, 1].set_title("one-step velocity RMSE along the log (rad/s)")
-    axes[1, 1].legend(fontsize=7)
-    for ax in axes[1, :2]:
-        ax.set_xticks(x, robot.joints, rotation=60, fontsize=7)
-    for model, values in predicted.items():
-        axes[1, 2].plot(robot.t[one_step_rows], robot.column("qd")[one_step_rows, joint]
-                        - values[one_step_rows, 1, joint], color=colours[model], lw=0.7, label=model)
-    if robot.has("gap_qd"):
-        axes[1, 2].plot(robot.t[one_step_rows], robot.column("gap_qd")[one_step_rows, joint], color="tab:purple",
-                        lw=0.7, label=f"live gap monitor ({robot.meta.get('reference_model')})")
-    axes[1, 2].set_title(f"{name} one-step velocity residual, measured - predicted (rad/s)")
-    axes[1, 2].legend(fontsize=7)
-    speed_robot, speed_sim = forward_velocity(robot), forward_velocity(simulation)
-    if speed_robot is not None and speed_sim is not None:
-        axes[1, 3].plot(robot.t[::10], speed_robot, color="k", lw=0.9, label="robot (log, simulator truth)")
-        axes[1, 3].plot(simulation.t[::10], speed_sim, color="tab:blue", lw=0.9, label="simulator (closed loop)")
-        axes[1, 3].set_title("forward velocity (m/s)")
-    else:
-        axes[1, 3].set_title("velocity command vx (m/s) (no base velocity in a robot's log)")
-    axes[1, 3].plot(robot.t, robot.column("command")[:, 0], color="0.5", lw=0.8, ls=":", label="command vx")
-    axes[1, 3].legend(fontsize=7)
-    fig.suptitle(f"{robot.path}: robot log against the nominal simulator and the PINN")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-
-
-def _fmt(value) -> str:
-    return "—" if value is None else f"{value:.4g}"
-
-
-def _ended(ended: dict | None) -> str:
-    ended = ended or {}
-    cause = ended.get("error") or ended.get("stop_cause") or ended.get("note") or "not recorded (no close)"
-    return cause + (f" (exit code {ended['exit_code']})" if ended.get("exit_code") is not None else "")
-
-
-def markdown(report: dict) -> str:
-    meta, closed, one_step, gap = report["meta"], report["closed_loop"], report["one_step"], report["gap_monitor"]
-    log = meta["log"]
-    lines = [f"# Replay of {meta['log_path']}", "",
-             f"{log['backend']} backend, {log['controller']}, transfer {log['transfer']}, "
-             f"gap {log['gap']['profile'] if log['gap'] else 'none (no profile)'}; {closed['ticks']} ticks compared "
-             f"({log['rows_written']} rows, {log['rows_dropped']} dropped); the run ended: {_ended(log['ended'])}",
-             "",
-             "| joint | RMSE q vs simulator (rad) | offset (rad) | RMSE qd vs simulator (rad/s) | "
-             "one-step qd RMSE PINN (rad/s) | one-step qd RMSE nominal (rad/s) | live gap monitor qd RMS (rad/s) |",
-             "|---|---|---|---|---|---|---|"]
-    for name in closed["joint_rmse_per_joint"]:
-        cells = [closed["joint_rmse_per_joint"][name], closed["offset_per_joint"][name],
-                 closed["joint_velocity_rmse_per_joint"][name],
-                 one_step["pinn"].get("rmse_qd_per_joint", {}).get(name),
-                 one_step["nominal"].get("rmse_qd_per_joint", {}).get(name),
-                 (gap or {}).get("rms_qd_per_joint", {}).get(name)]
-        lines.append(f"| {name} | " + " | ".join(_fmt(c) for c in cells) + " |")
-    lines.append(f"| **mean** | **{_fmt(closed['joint_rmse'])}** | | **{_fmt(closed['joint_velocity_rmse'])}** | "
-                 f"{_fmt(one_step['pinn'].get('rmse_qd'))} | {_fmt(one_step['nominal'].get('rmse_qd'))} | "
-                 f"{_fmt((gap or {}).get('rms_qd'))} |")
-    notes = [f"- {key}: {value}" for key, value in one_step.items() if "unavailable" in value]
-    notes += [f"- {note}" for note in meta["notes"]]
-    return "\n".join(lines + ([""] + notes if notes else [])) + "\n"
-
-
-# -- the command ----------------------------------------------------------------------------------------------------
-def add_parser(commands) -> argparse.ArgumentParser:
-    p = commands.add_parser("replay", help="a recorded run (bruce-run --record) against the simulator and the PINN",
-                            description=__doc__.split("\n\n")[0])
-    p.add_argument("--log", type=Path, required=True, help="the log directory (bruce-run --record DIR)")
-    p.add_argument("--out", type=Path, default=None,
-                   help="directory for replay.json, replay.md, fig6_replay.png and the simulation's log "
-                        "(default: LOG_replay beside the log)")
-    p.add_argument("--config", default=None,
-                   help="robot config (default: the log's, with the log's --set overrides)")
-    p.add_argument("--policy", type=Path, default=None, help="ONNX policy (default: the log's)")
-    p.add_argument("--pinn", type=Path, default=None,
-                   help="ONNX PINN for the one-step predictions (default: the log's, else pinn.model)")
-    p.add_argument("--joint", default="0", help="the joint of the traces: a name or an index (default: 0)")
-    p.add_argument("--window", default=None, metavar="START,END",
-                   help="seconds of the traces (default: 10 to 11 s, or the last second of a shorter log)")
-    return p
-
-
-def _config_of(log: RunLog, args) -> tuple[RobotConfig, list[str]]:
-    recorded = log.meta.get("config") or {}
-    overrides = list(recorded.get("overrides") or [])
-    path = args.config or recorded.get("path")
-    if path is None:
-        raise LogError(f"{log.path / META_FILE}: no config recorded: pass --config")
-    notes = []
-    spec = log.meta.get("policy_spec")  # given to the run by --policy-spec: the same spec for the simulation
-    if spec and not any(o.startswith("policy.spec=") for o in overrides):
-        if not Path(spec["path"]).is_file():
-            raise LogError(f"{spec['path']}: the log's policy spec file not found")
-        overrides.append(f"policy.spec={spec['path']}")
-    if args.config is None and recorded.get("sha256") and Path(path).is_file() and \
-            file_sha256(path) != recorded["sha256"]:
-        notes.append(f"the config {path} changed since the recording (SHA-256 differs)")
-    config = load_config(path, overrides)
-    if tuple(config.joints) != log.joints:
-        raise LogError(f"{log.path / META_FILE}: joints {', '.join(log.joints)} differ from the config's "
-                       f"({config.path}: {', '.join(config.joints)})")
-    if config.loop_hz != log.meta["loop_hz"]:
-        raise LogError(f"{log.path / META_FILE}: loop_hz {log.meta['loop_hz']} differs from the config's "
-                       f"{config.loop_hz} ({config.path})")
-    return config, notes
-
-
-def _model_path(given: Path | None, recorded: dict | None, fallback: Path | None, what: str,
-                notes: list[str]) -> Path | None:
-    """The model file to use: `given`, else the log's (which must still exist), else `fallback`."""
-    if given is not None:
-        if not given.is_file():
-            raise LogError(f"{given}: {what} file not found")
-        return given
-    if recorded:
-        path = Path(recorded["path"])
-        if not path.is_file():
-            raise LogError(f"{path}: the log's {what} file not found (pass --{what} PATH)")
-        if recorded.get("sha256") and file_sha256(path) != recorded["sha256"]:
-            notes.append(f"the {what} {path} changed since the recording (SHA-256 differs)")
-        return path
-    return fallback
-
-
-def _window(text: str | None) -> tuple[float, float] | None:
-    if text is None:
-        return None
-    try:
-        start, end = (float(v) for v in text.split(","))
-    except ValueError:
-        raise LogError(f"--window: expected START,END in seconds, got {text!r}") from None
-    if not end > start:
-        raise LogError(f"--window: END must exceed START, got {text!r}")
-    return start, end
-
-
-def _joint(text: str, joints: tuple[str, ...]) -> int:
-    if text in joints:
-        return joints.index(text)
-    if text.isdigit() and int(text) < len(joints):
-        return int(text)
-    raise LogError(f"--joint: {text!r} is neither a joint ({', '.join(joints)}) nor an index 0..{len(joints) - 1}")
-
-
-def replay(args, argv: list[str]) -> dict:
-    """The whole replay; writes the outputs and returns the report."""
-    from training.dataset import config_hash
-
-    log = load_log(args.log)
-    config, notes = _config_of(log, args)
-    joint, window = _joint(args.joint, log.joints), _window(args.window)
-    meta = log.meta
-    controller = meta.get("controller") or "policy"
-    policy = _model_path(args.policy, meta.get("policy"), None, "policy", notes) if controller == "policy" else None
-    pinn = _model_path(args.pinn, meta.get("pinn"), config.models.pinn, "pinn", notes)
-    out = args.out or (log.path.parent / f"{log.path.name}_replay")
-    out.mkdir(parents=True, exist_ok=True)
-    if log.torn_bytes:
-        notes.append(f"the rows file ends in a partial row ({log.torn_bytes} bytes, left out): the run was cut off")
-    if meta.get("rows_dropped"):
-        notes.append(f"{meta['rows_dropped']} rows were dropped while recording (the disk was behind)")
-    simulation = simulate(log, config, out / SIMULATION_DIR, policy)
-    predicted, one_step = {}, {}
-    if pinn is None:
-        one_step["pinn"] = {"unavailable": "no PINN: pass --pinn PATH or set pinn.model"}
-    else:
-        predicted["pinn"] = pinn_one_step(log, pinn)
-        one_step["pinn"] = {"model": str(pinn), **one_step_figures(log, predicted["pinn"])}
-    if log.has("base_pos"):
-        predicted["nominal"] = nominal_one_step(log, config)
-        one_step["nominal"] = one_step_figures(log, predicted["nominal"])
-    else:
-        one_step["nominal"] = {"unavailable": "the log has no base state (a robot measures none), which the nominal "
-                                              "model needs; the closed loop and the PINN compare instead"}
-    report = {
-        "meta": {"command": "bruce-eval " + " ".join(argv), "log_path": str(log.path),
-                 "log": {key: meta.get(key) for key in ("backend", "controller", "policy", "transfer", "pinn",
-                                                        "estimator", "gap", "commands", "started_utc",
-                                                        "rows_written", "rows_dropped", "recording_stopped",
-                                                        "ended", "config")},
-                 "config": str(config.path), "config_hash": config_hash(config), "pinn": str(pinn) if pinn else None,
-                 "policy": str(policy) if policy else None, "simulation_log": str(out / SIMULATION_DIR),
-                 "simulation_start": "the log's initial_q" if meta.get("initial_q") is not None
-                 else "the log's first joint angles",
-                 "joint": log.joints[joint], "window_s": list(window) if window else None, "notes": notes},
-        "closed_loop": closed_loop_figures(log, simulation),
-        "one_step": one_step,
-        "gap_monitor": gap_monitor_figures(log),
-    }
-    (out / "replay.json").write_text(json.dumps(json_safe(report), indent=2) + "\n")
-    (out / "replay.md").write_text(markdown(report))
-    try:
-        plot(out / FIGURE, log, simulation, predicted, report, joint, window)
-        report["figure"] = str(out / FIGURE)
-    except ModuleNotFoundError as exc:  # matplotlib comes with the `train` extra; the numbers do not need it
-        report["figure"] = f"no figure ({exc.name} is not installed: pip install -e '.[train]')"
-    report["out"] = str(out)
-    return report
-
-
-def run_replay(args, argv: list[str]) -> int:
-    from runtime.inference import ModelError
-
-    try:
-        report = replay(args, argv)
-    except (LogError, ConfigError, ModelError) as exc:
-        print(f"bruce-eval: error: {exc}", file=sys.stderr)
-        return 2
-    print((Path(report["out"]) / "replay.md").read_text())
-    print(f"bruce-eval: wrote {report['out']}/replay.json, replay.md, {report['figure']}")
-    return 0

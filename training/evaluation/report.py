@@ -1,5 +1,5 @@
 """The evaluation's report: strict JSON, the Markdown table, and the paper's Fig. 4 and Fig. 5 as PNG
-(`bruce-eval dynamics`, training/evaluation/dynamics_eval.py computes what they show)."""
+(`bruce-eval dynamics`: training/evaluation/dynamics_eval.py and dynamics_timing.py compute what they show)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
-"""`bruce-eval dynamics` (training/evaluation/dynamics_eval.py): NMSE definitions against hand-computed values, start
-points and transitions that never cross a run, the oracle, checkpoints, and the CLI end to end on a tiny synthetic
-file."""
+"""`bruce-eval dynamics` (training/evaluation/dynamics_eval.py, dynamics_cli.py): NMSE definitions against
+hand-computed values, start points and transitions that never cross a run, the oracle, checkpoints, and the CLI end
+to end on a tiny synthetic file."""
 
 from __future__ import annotations
 
@@ -27,11 +27,11 @@ from training.evaluation.dynamics_eval import (
     Protocol,
     bounded_check,
     evaluate_model,
-    json_safe,
     load_eval_data,
     nmse_per_joint,
     select_start_points,
 )
+from training.evaluation.report import json_safe
 
 N = 10
 DT = 1e-3
