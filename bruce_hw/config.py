@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import sys
 from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
@@ -627,3 +628,13 @@ def load_config(path: str | Path = DEFAULT_CONFIG, overrides: list[str] | None =
     if overrides:
         data = apply_overrides(data, overrides, resolved, ConfigError)
     return parse_config(data, resolved)
+
+
+def load_config_or_say(prog: str, path: str | Path = DEFAULT_CONFIG,
+                       overrides: list[str] | None = None) -> RobotConfig | None:
+    """For a command line: the config, or None after the one line that names the problem on stderr (exit 2)."""
+    try:
+        return load_config(path, overrides)
+    except ConfigError as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return None

@@ -18,7 +18,7 @@ import numpy as np
 
 from bruce_hw.bus_report import PRESENCE_TRIES, TICK_S, BusReport, RoundTrips, add_timing, verdict_1khz
 from bruce_hw.bus_startup import ids_text
-from bruce_hw.config import DEFAULT_CONFIG, ConfigError, RobotConfig, load_config
+from bruce_hw.config import DEFAULT_CONFIG, RobotConfig, load_config_or_say
 from bruce_hw.leg_kinds import leg_kind_of
 from bruce_hw.watchdog_probe import PROBE_COUNTS, run_watchdog_probe
 
@@ -290,10 +290,8 @@ def main(argv: list[str] | None = None) -> int:
     if not 0 <= rtt_cycles <= 100_000:
         print(f"{PROG}: --rtt-cycles: {args.rtt_cycles!r} is not a count in 0..100000", file=sys.stderr)
         return 2
-    try:
-        config = load_config(args.config, args.overrides)
-    except ConfigError as exc:
-        print(f"{PROG}: {exc}", file=sys.stderr)
+    config = load_config_or_say(PROG, args.config, args.overrides)
+    if config is None:
         return 2
     if args.probe_watchdog:
         return run_watchdog_probe(config, args.probe_id, args.probe_counts)

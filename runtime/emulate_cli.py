@@ -17,7 +17,7 @@ import sys
 import threading
 import time
 
-from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
+from bruce_hw.config import DEFAULT_CONFIG, load_config_or_say
 from bruce_hw.leg_kinds import LEG_KINDS, leg_kind_of
 from drivers.emulators.reply_delay import MAX_DELAY_S, check_delay
 
@@ -170,10 +170,8 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2
-    try:
-        config = load_config(args.config, args.overrides)
-    except ConfigError as exc:
-        print(f"{PROG}: {exc}", file=sys.stderr)
+    config = load_config_or_say(PROG, args.config, args.overrides)
+    if config is None:
         return 2
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     restore = None
