@@ -8,7 +8,6 @@ code that makes it, and drivers/emulators/bear.py makes the same ones.
 
 from __future__ import annotations
 
-import os
 import struct
 import time
 from collections.abc import Iterable, Mapping, Sequence
@@ -56,8 +55,6 @@ STALL_TOLERANCE_S = 0.0005
 # Most host time a call does not count against the device: beyond it the readings are too old for any data-age limit
 # (safety.max_sensor_age_s is at most 50 ms), so waiting longer would gain nothing.
 MAX_STALL_CREDIT_S = 0.05
-STALE_READ_BYTES = 4096  # per read of stale input; a few reads drain any backlog a bus cycle can leave
-STALE_READS_MAX = 16
 
 
 # -- replies --------------------------------------------------------------------------------------------------------
@@ -341,32 +338,12 @@ class BearBus:
         return n_bytes * 10 / self.baud  # 8N1: 10 bits a byte
 
     def _send(self, packet: bytes) -> None:
-        """Drop stale input (late replies of an earlier request), then write the whole packet."""
+        """Flush stale input (late replies of an earlier request), then write the whole packet."""
         try:
-            self._drop_stale_input()
+            self._serial.reset_input_buffer()
             self._serial.write(packet)
         except self._io_errors as exc:
             raise DriverError(f"{self.port}: write failed: {exc}") from exc
-
-    def _drop_stale_input(self) -> None:
-        """Read away what has arrived, without waiting. Not tcflush (`reset_input_buffer`): the kernel's flush waits
-        for the tty's buffer lock, which the worker thread delivering the port's bytes holds; a worker kept from a
-        CPU (every CPU busy with real-time threads, as on a loaded 2-core VM) held this bus thread for up to 19 ms
-        per cycle, and the devices looked silent. The port is non-blocking (pyserial opens it O_NONBLOCK), so a read
-        returns what the line discipline holds, or nothing, at once; bytes still on their way arrive later and the
-        parser takes them for what they are (a packet of an ID already answered is a duplicate)."""
-        fd = getattr(self._serial, "fd", None)
-        if fd is None:  # not a POSIX port (pyserial's other platforms): their flush does not wait on a worker
-            self._serial.reset_input_buffer()
-            return
-        for _ in range(STALE_READS_MAX):
-            try:
-                stale = os.read(fd, STALE_READ_BYTES)
-            except BlockingIOError:
-                return
-            if not stale:
-                return
-            self.stats.reject("stale")  # a read that found bytes of an earlier exchange
 
     def _read(self, device_id: int, registers: list[Register], tries: int | None = None) -> RegisterReply:
         if not registers:

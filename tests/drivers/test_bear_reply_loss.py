@@ -131,20 +131,3 @@ def test_a_stall_beyond_the_credit_costs_the_replies(emulator):
         stall_next_read(bus, MAX_STALL_CREDIT_S + 0.03)
         assert bus.bulk_cycle(IDS, None, partial=True).lost_ids == tuple(IDS)
         assert bus.stats.host_stalls >= 1
-
-
-def test_a_late_reply_of_an_earlier_request_is_dropped_not_taken_for_the_next(emulator, monkeypatch):
-    """The bulk cycle after one whose replies came too late must read this cycle's values, not the late ones, and
-    must drop them without the kernel's flush (tcflush waits on the tty worker: docs/timing.md)."""
-    emulator.set_measured(1, 0.25, 0.0, 0.0)
-    with BearBus(emulator.path, reply_timeout_s=0.002) as bus:
-        monkeypatch.setattr(bus._serial, "reset_input_buffer", lambda: pytest.fail("tcflush in the cycle"))
-        emulator.set_reply_delay(0.03)  # every reply of the next cycle arrives after its deadline
-        late = bus.bulk_cycle([1], None, partial=True)
-        assert late.lost_ids == (1,)
-        time.sleep(0.1)  # the late reply (position 0.25) is in the port's input now
-        emulator.set_reply_delay(0.0)
-        emulator.set_measured(1, -0.5, 0.0, 0.0)
-        fresh = bus.bulk_cycle([1], None, partial=True)
-        assert fresh.lost_ids == () and fresh.position[0] == pytest.approx(-0.5, abs=1e-3)
-        assert bus.stats.rejected["stale"] >= 1
