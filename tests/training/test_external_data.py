@@ -87,6 +87,7 @@ def test_a_500hz_csv_in_another_joint_order_becomes_our_1khz_dataset(walk, confi
     assert meta["resampling"]["method"] == "interpolate" and meta["command"].startswith("bruce-import-data ")
 
 
+@pytest.mark.slow  # trains a PINN twice (seconds): left out of the fast subset
 def test_the_converted_file_and_the_csv_itself_train_a_pinn(walk, config, tmp_path, capsys):
     source = write_csv(tmp_path / "isaac.csv", source_columns(walk, config))
     assert run(bruce_import, [source, "--out", tmp_path / "walk.npz", "--resample"], capsys)[0] == 0
