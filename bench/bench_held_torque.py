@@ -10,7 +10,7 @@ the state k ms later, as after a real stall (the loop then goes on at once: it s
 Cases: standing (the policy at a zero command), walking at 0.4 m/s and at -0.5 m/s; the nominal mock and the
 `default` reality gap; the robot's own estimator (`kinematic`) and direct transfer (Eq. 8). The hold starts at a
 seeded random time in [--start, --start + 1) s, after the walk has settled. A run falls when the base drops
-(the mock's fall rule, `runtime.falls`). Per case and k: the runs that fell of the phases tried.
+(the mock's fall rule, `runtime.loop.falls`). Per case and k: the runs that fell of the phases tried.
 
 The result: the shortest k at which any case fell, and the bound set below it with a margin
 (docs/results/safety_held_torque.md).
@@ -35,7 +35,7 @@ from bruce_hw.backend import LifecycleState
 from bruce_hw.config import load_config
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.reality_gap import load_gap
-from runtime.commands import CommandSchedule
+from runtime.control.commands import CommandSchedule
 
 CASES = {"stand": (0.0, 0.0, 0.0), "walk 0.4 m/s": (0.4, 0.0, 0.0), "walk -0.5 m/s": (-0.5, 0.0, 0.0)}
 GAPS = ("none", "default")
@@ -60,7 +60,7 @@ class HoldingMock(MujocoBackend):
 
 
 def run_one(job: dict) -> dict:
-    from runtime.run import run_session
+    from runtime.loop.run import run_session
 
     # The loop's rate floor would end the run at the stall itself: set aside, since this measures the robot.
     config = load_config(overrides=["safety.min_rate_hz=50", "safety.rate_window_s=1.0"])

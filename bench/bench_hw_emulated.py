@@ -10,7 +10,7 @@
    (bench/stall_witness.py: SCHED_FIFO 90 on every CPU) reports the machine's own stalls, and for a run that
    tripped, those in the 60 ms before the emulator saw damping: on a virtual machine the hypervisor stops virtual
    CPUs for 3-40 ms at times, which no scheduling inside it can prevent and the data-age bound must trip on.
-2. Faults, `--fault-trials N` each (in this process, through runtime.run.run_session): BEAR IDs 3 and 4 silenced,
+2. Faults, `--fault-trials N` each (in this process, through runtime.loop.run.run_session): BEAR IDs 3 and 4 silenced,
    the E-stop input, the IMU stream stopped, the leg bus unplugged; time from the fault (the emulator's reply stamp,
    system monotonic clock) to the hw backend entering damping. Goals: silence, IMU stop, unplug <= 10 ms;
    E-stop <= 2 ms.
@@ -52,7 +52,7 @@ from bruce_hw.backend import BackendError
 from bruce_hw.config import load_config
 from bruce_hw.emulator_process import EmulatorProcess, FaultAt, reply_time
 from bruce_hw.hw import make_hw_backend
-from runtime.run import run_session
+from runtime.loop.run import run_session
 
 BULK_RATE_GOAL_HZ = 990.0
 TRIP_LOOKBACK_S = 0.06  # a machine stall this close before a trip explains it (the data-age bound is 8 ms)

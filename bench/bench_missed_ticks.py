@@ -1,7 +1,7 @@
 """Missed control deadlines on the mock: what a late tick does to Eq. 8 walking and to the PINN / Eq. 9 reference.
 
 On a robot a late tick holds the last torque for (1 + k) ms and the next tick reads the state k ms later than due;
-the loop (runtime/run.py) then runs that tick at once, skips the missed deadlines (no burst), schedules the policy
+the loop (runtime/loop/run.py) then runs that tick at once, skips the missed deadlines (no burst), schedules the policy
 on the backend's clock and steps the PINN once from the measured state, so its LSTM sees a (1 + k)-ms step as a
 1-ms one. `SkippingMock` emulates that: with probability p per tick (seeded), read() steps the physics k extra
 1-ms steps with the torque held (command, bus delay line, motor lag and sensor delay line all advance per
@@ -47,10 +47,10 @@ from bruce_hw.backend import LifecycleState
 from bruce_hw.config import load_config
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.reality_gap import load_gap
-from runtime.commands import CommandSchedule
-from runtime.inference import OnnxPinn
-from runtime.observers import EachTick
-from runtime.run import run_session
+from runtime.control.commands import CommandSchedule
+from runtime.control.inference import OnnxPinn
+from runtime.loop.observers import EachTick
+from runtime.loop.run import run_session
 
 CASES = ((0.0, 1), (0.02, 1), (0.10, 1), (0.02, 4))  # (skip share p, extra steps k)
 GAPS = ("none", "default")

@@ -19,7 +19,7 @@ import mujoco
 import numpy as np
 
 from bruce_hw import load_config, make_backend
-from runtime.run import run_session
+from runtime.loop.run import run_session
 
 GOAL = 20.0
 

@@ -5,7 +5,7 @@ carrying the LSTM state (h', c') into the next call with fixed (q, qd, tau) inpu
 untrained model drift without bound over 10^5 calls; the cost of a call does not depend on the values):
 - torch eager: `PinnStep` under `torch.inference_mode()`, one intra-op thread, tensors fed back as tensors;
 - torch eager, numpy in/out: the same, called the way the runtime calls a PINN (float64 numpy in and out);
-- runtime: `runtime.inference.OnnxPinn.step` exactly as the 1 kHz loop calls it (float64 in and out,
+- runtime: `runtime.control.inference.OnnxPinn.step` exactly as the 1 kHz loop calls it (float64 in and out,
   IOBinding ping-pong, non-finite check);
 - ORT call paths on the same session: `run(names, feeds)`, `run_with_iobinding(io)`,
   `run_with_iobinding(io, RunOptions)` and `run_with_ort_values`, to show why the runtime uses the second
@@ -28,7 +28,7 @@ import numpy as np
 import onnxruntime as ort
 import torch
 
-from runtime.inference import OnnxPinn, session_options
+from runtime.control.inference import OnnxPinn, session_options
 from training.dynamics.export import export_pinn_onnx
 from training.dynamics.pinn import PinnStep, make_random_pinn
 from training.evaluation.dynamics_timing import timed_calls

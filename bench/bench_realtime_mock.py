@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from bruce_hw import load_config, make_backend
-from runtime.run import run_session
+from runtime.loop.run import run_session
 from runtime.telemetry import parse_sink
 from training.dynamics.export import export_pinn_onnx
 from training.dynamics.pinn import make_random_pinn

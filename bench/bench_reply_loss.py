@@ -39,7 +39,7 @@ def stand_lockstep(emulator: EmulatorProcess, seconds: float, overrides: list[st
     from bruce_hw.backend import BackendError
     from bruce_hw.config import load_config
     from bruce_hw.hw import make_hw_backend
-    from runtime.run import exit_code_of, run_session
+    from runtime.loop.run import exit_code_of, run_session
 
     config = load_config(overrides=emulator.overrides + overrides)
     with tempfile.TemporaryDirectory() as tmp:

@@ -21,9 +21,9 @@ import time
 from bruce_hw.config import load_config
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.reality_gap import load_gap
-from runtime.commands import CommandSchedule
-from runtime.loopstats import Histogram
-from runtime.run import run_session
+from runtime.control.commands import CommandSchedule
+from runtime.loop.loopstats import Histogram
+from runtime.loop.run import run_session
 
 RATIO_GOAL = 1.5
 RECOMMENDED = "shadow_twin"

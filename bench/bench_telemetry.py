@@ -1,13 +1,13 @@
 """Cost of rerun telemetry on the 1 kHz control thread, and its effect on a real-time mock run, in one run.
 
-1. Control-thread cost: a loop paced to 1 kHz by `runtime.pacing.Pacer` whose body makes fresh copies of five
+1. Control-thread cost: a loop paced to 1 kHz by `runtime.loop.pacing.Pacer` whose body makes fresh copies of five
    10-joint arrays (as the loop passes them) and, with telemetry on, calls `Telemetry.append` every tick and
    `append_pose` every `Telemetry.pose_decimation` ticks (~30 Hz, as the loop does; sink save= to a temporary
    .rrd, the MuJoCo mock's model, so the 3-D geometry and poses are sent too). Telemetry off is the same body
    without the calls (`mock.body_poses()` is called in both). Reported per tick: the telemetry
    calls alone, the whole body, and how late the ticks start. The loop runs on the last allowed CPU, as
    `bruce-run --realtime` does; the telemetry process keeps off that CPU by itself.
-2. Real-time mock session: `runtime.run.run_session` on the mock backend, paced to the wall clock, as
+2. Real-time mock session: `runtime.loop.run.run_session` on the mock backend, paced to the wall clock, as
    `bench/bench_realtime_mock.py` runs it, with telemetry off and then on (save= to a temporary .rrd): late
    ticks (> 250 µs behind the deadline), tick work p99 and the loop's own telemetry section.
 
@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from bruce_hw import load_config, make_backend
-from runtime.pacing import Pacer
+from runtime.loop.pacing import Pacer
 from runtime.telemetry import Telemetry, parse_sink
 
 GOAL_US = 5.0
@@ -123,7 +123,7 @@ def control_thread_cost(config, ticks: int, pose_every: int | None) -> None:
 
 
 def realtime_session(config, seconds: float, transfer: str, sink) -> tuple[dict, float]:
-    from runtime.run import run_session
+    from runtime.loop.run import run_session
 
     pinn = None
     with tempfile.TemporaryDirectory() as tmp:

@@ -1,6 +1,6 @@
 """Cost per call of the two walking controllers, measured in one run on the same states: the model-based teacher
 (`runtime.walking.teacher.WalkingTeacher`: kinematics, DCM footstep, IK, feed-forward) and the distilled ONNX
-policy (`runtime.policy.PolicyController`: observation + onnxruntime), each called as the 1 kHz loop calls its
+policy (`runtime.control.policy.PolicyController`: observation + onnxruntime), each called as the 1 kHz loop calls its
 nominal controller at 100 Hz.
 
 States come from a teacher walk in the mock at 0.4 m/s; each controller is then called on them in interleaved
@@ -21,11 +21,11 @@ import numpy as np
 
 from bruce_hw.config import load_config
 from bruce_hw.mock import MujocoBackend
-from runtime.commands import CommandSchedule
-from runtime.inference import OnnxPolicy
+from runtime.control.commands import CommandSchedule
+from runtime.control.inference import OnnxPolicy
+from runtime.control.policy import PolicyController
+from runtime.loop.run import run_session
 from runtime.observation.builder import ObservationBuilder
-from runtime.policy import PolicyController
-from runtime.run import run_session
 from runtime.walking.teacher import WalkingTeacher
 
 

@@ -136,7 +136,7 @@ class Backend(ABC):
         (`bruce_hw.host_witness`). 0 where the backend's clock is the simulation's own (the mock, echo)."""
         return 0.0
 
-    # A robot-faithful run seals the truth while anything but its observers runs (`runtime.run`): the control path
+    # A robot-faithful run seals the truth while anything but its observers runs (`runtime.loop.run`): the control path
     # must work on what a robot measures, and a read of the truth then raises instead of going unnoticed.
     truth_sealed = False
 

@@ -137,7 +137,7 @@ class ModelsConfig:
     # The PINN's mean one-step velocity error on the simulator itself (predicted minus simulated qd, rad/s, per
     # joint; None: not measured), which the residual observer takes off (runtime/transfer/observer.py).
     pinn_residual_bias: np.ndarray | None = None
-    # The policy's observation/action spec (runtime/policy_spec.py); None: its sidecar's, else Table I.
+    # The policy's observation/action spec (runtime/control/policy_spec.py); None: its sidecar's, else Table I.
     policy_spec: Path | None = None
 
 

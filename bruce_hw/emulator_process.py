@@ -150,7 +150,7 @@ def reply_time(reply: str) -> float:
 
 
 class FaultAt:
-    """A command source for runtime.run.run_session (stand still) that posts one fault command to an
+    """A command source for runtime.loop.run.run_session (stand still) that posts one fault command to an
     EmulatorProcess `t` seconds after activation, from inside the control loop, so that its moment is known."""
 
     name = "fault injection"

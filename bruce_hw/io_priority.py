@@ -1,11 +1,11 @@
 """The process's other Python threads (the hw backend's bus thread, sense-board reader and arms, the log relay)
 scheduled one real-time step above the loop, on its CPU (docs/timing.md, "Scheduling").
 
-Once runtime.realtime has given the loop thread SCHED_FIFO on one CPU, a thread left at SCHED_OTHER can be starved
+Once runtime.loop.realtime has given the loop thread SCHED_FIFO on one CPU, a thread left at SCHED_OTHER can be starved
 (by a real-time process on another CPU, any busy process, or the loop's spin), and a starved thread that holds the
 GIL stalls the loop too (priority inversion). So every Python thread goes on the loop's CPU(s) one FIFO priority
 step above it: an I/O thread preempts the loop when its data arrives, parses for a few tens of microseconds and
-blocks again; the loop's spin yields the GIL on every turn (runtime.pacing). Threads without the GIL (onnxruntime's
+blocks again; the loop's spin yields the GIL on every turn (runtime.loop.pacing). Threads without the GIL (onnxruntime's
 pool, the telemetry child process) are not touched; a loop without SCHED_FIFO leaves them as they are. Such a
 thread must block rather than poll: a poller above the loop starves it and burns the CPU's real-time budget.
 """

@@ -16,7 +16,7 @@ import re
 import sys
 from pathlib import Path
 
-from runtime.exit import NOTHING_ENABLED, ExitCode, StopFlag, StopRequested
+from runtime.loop.exit import NOTHING_ENABLED, ExitCode, StopFlag, StopRequested
 
 # Everything else is imported inside the functions: `main` takes SIGINT/SIGTERM over first, so that a signal while
 # numpy, MuJoCo or onnxruntime load ends the run with one line and exit code 0, never a traceback.
@@ -38,7 +38,7 @@ def seed(text: str) -> int:
 
 def constant_command(text: str):
     """--cmd VX,VY,WZ: one velocity command, within COMMAND_LIMITS."""
-    from runtime.commands import COMMAND_AXES, CommandSchedule
+    from runtime.control.commands import COMMAND_AXES, CommandSchedule
 
     try:
         values = [float(part) for part in text.split(",")]
@@ -74,8 +74,8 @@ def default_rerun_sink() -> str:
 def build_parser() -> argparse.ArgumentParser:
     from bruce_hw.backends import BACKENDS
     from bruce_hw.config import DEFAULT_CONFIG
-    from runtime.commands import COMMAND_LIMITS, COMMAND_UNITS
-    from runtime.controllers import CONTROLLERS
+    from runtime.control.commands import COMMAND_LIMITS, COMMAND_UNITS
+    from runtime.control.controllers import CONTROLLERS
     from runtime.estimation.estimators import ESTIMATORS
     from runtime.telemetry import SINK_HELP
     from runtime.transfer.registry import scheme_help
@@ -142,7 +142,7 @@ EXIT_CODES_HELP = "exit codes: " + ", ".join(f"{int(c)} {c.name.lower().replace(
 
 
 def main(argv: list[str] | None = None) -> int:
-    """bruce-run; the exit code is a runtime.exit.ExitCode."""
+    """bruce-run; the exit code is a runtime.loop.exit.ExitCode."""
     stop = StopFlag().install()
     try:
         return _main(argv, stop)
@@ -160,12 +160,12 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
     from bruce_hw.backends import make_backend
     from bruce_hw.config import ConfigError
     from bruce_hw.reality_gap import GapError, load_gap
-    from runtime.commands import CommandSchedule
-    from runtime.inference import ModelError
-    from runtime.policy_spec import policy_spec_for, spec_file, trained_commands
-    from runtime.recorder import RecordError
+    from runtime.control.commands import CommandSchedule
+    from runtime.control.inference import ModelError
+    from runtime.control.policy_spec import policy_spec_for, spec_file, trained_commands
+    from runtime.loop.recorder import RecordError
+    from runtime.loop.run import RunSummary, exit_code_of, run_session, stats_path_error, write_stats
     from runtime.robot_config import load_config
-    from runtime.run import RunSummary, exit_code_of, run_session, stats_path_error, write_stats
     from runtime.telemetry import TelemetryError, parse_sink
     from runtime.transfer.stage import settings_for
 
@@ -261,8 +261,8 @@ def _main(argv: list[str] | None, stop: StopFlag) -> int:
 
 
 def _recorder(args, config, transfer: str, gap, commands):
-    """`--record DIR`: the run's log (runtime.recorder); RecordError for a path that cannot take one."""
-    from runtime.recorder import DEFAULT_MAX_S, RunRecorder, describe_run
+    """`--record DIR`: the run's log (runtime.loop.recorder); RecordError for a path that cannot take one."""
+    from runtime.loop.recorder import DEFAULT_MAX_S, RunRecorder, describe_run
 
     run = describe_run(config, backend=args.backend, controller=args.controller, policy=args.policy,
                        transfer=transfer, pinn=args.pinn, estimator=args.estimator, overrides=args.overrides,

@@ -277,7 +277,7 @@ class _EventPrinter:
 
 def _realtime():
     """SCHED_FIFO for the calling thread (threads it starts inherit it), kept off the last CPU, which bruce-run's
-    real-time loop takes (runtime/realtime.py): sharing it, the two would exceed the kernel's real-time budget for
+    real-time loop takes (runtime/loop/realtime.py): sharing it, the two would exceed the kernel's real-time budget for
     one CPU (sched_rt_runtime_us, 95 %) and be throttled for tens of milliseconds at a time. Returns (a function
     that restores the thread's scheduling, or None, and a line for people)."""
     try:

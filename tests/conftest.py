@@ -150,7 +150,7 @@ def offset_pinn_onnx(tmp_path_factory):
 def no_memory_lock(monkeypatch):
     """Paced in-process sessions without mlockall: in a pytest process that has loaded torch (the distillation
     tests) locking every mapping stalls the loop for seconds. bruce-run, in a process of its own, locks memory."""
-    from runtime import realtime, run
+    from runtime.loop import realtime, run
 
     monkeypatch.setattr(run, "request_realtime", lambda: realtime.request_realtime(lock_memory=False))
 

@@ -1,10 +1,10 @@
 """Records made for another machine (sidecars, datasets, logs) name files in this repository by their place in it,
-not by this checkout's absolute path (`runtime.recorder.portable_path`)."""
+not by this checkout's absolute path (`runtime.loop.recorder.portable_path`)."""
 
 from pathlib import Path
 
 from bruce_hw.config import DEFAULT_CONFIG
-from runtime.recorder import REPOSITORY, portable_path
+from runtime.loop.recorder import REPOSITORY, portable_path
 
 
 def test_a_file_in_the_repository_is_named_relative_to_it_wherever_the_caller_stands(tmp_path, monkeypatch):

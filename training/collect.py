@@ -2,7 +2,7 @@
 
     bruce-collect --seconds 90 --seed 0 --out data/walk_90s.npz [--config PATH] [--segment-s 3.0] [--policy PATH]
 
-The walking policy walks the nominal mock through the runtime's own session loop (`runtime.run.run_session`, the
+The walking policy walks the nominal mock through the runtime's own session loop (`runtime.loop.run.run_session`, the
 ticks of `bruce-run --backend mock`: Eq. 8, safety, transfer direct, ground-truth base state, unpaced) under sampled
 velocity commands, and an observer of that loop (`EpisodeRecorder`) keeps q, qd and the written torque of every
 tick. An episode starts standing after an unrecorded warm-up and ends at a fall, whose last `fall_trim_s` is
@@ -31,15 +31,15 @@ from bruce_hw.backend import BackendError
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, RobotConfig
 from bruce_hw.mock import MujocoBackend
 from runtime.cli import positive_seconds
-from runtime.commands import COMMAND_AXES, COMMAND_LIMITS, CommandSchedule
-from runtime.controllers import build_controller
-from runtime.exit import INTERRUPTS
-from runtime.falls import fall_rule
-from runtime.inference import ModelError
-from runtime.observers import FallStop, TickObserver, TickView
-from runtime.recorder import file_sha256, portable_path
+from runtime.control.commands import COMMAND_AXES, COMMAND_LIMITS, CommandSchedule
+from runtime.control.controllers import build_controller
+from runtime.control.inference import ModelError
+from runtime.loop.exit import INTERRUPTS
+from runtime.loop.falls import fall_rule
+from runtime.loop.observers import FallStop, TickObserver, TickView
+from runtime.loop.recorder import file_sha256, portable_path
+from runtime.loop.run import run_session
 from runtime.robot_config import load_config
-from runtime.run import run_session
 from training.dataset import Dataset, DatasetError, config_hash, save_dataset
 from training.executor import Executor, ExecutorError, add_executor_arguments, job_files, make_executor
 
@@ -86,7 +86,7 @@ def sample_command(rng: np.random.Generator) -> tuple[list[float], list[float]]:
 
 class EpisodeRecorder(TickObserver):
     """An observer of the session's loop: copies q, qd, the written torque and the true base position of every
-    tick into preallocated arrays (a `runtime.observers.FallStop` after it ends the session at a fall)."""
+    tick into preallocated arrays (a `runtime.loop.observers.FallStop` after it ends the session at a fall)."""
 
     def __init__(self, n_ticks: int, n_joints: int, on_progress: Callable[[int], None]):
         self.q = np.empty((n_ticks, n_joints))

@@ -3,7 +3,7 @@
     python -m training.distill --out configs/robots/policies/bruce_walk.onnx [--seed 0] [--rounds N] ...
 
 The student sees the runtime policy's observation (Table I, `runtime.observation.builder.ObservationBuilder`), and
-its action goes through the runtime's own loop (`runtime.run.run_session`: Eq. 8, safety) at 1 kHz in the mock.
+its action goes through the runtime's own loop (`runtime.loop.run.run_session`: Eq. 8, safety) at 1 kHz in the mock.
 DAgger (Ross et al. 2011): round 0 rolls out the teacher; in round k the executed action is the teacher's with
 probability beta_decay^k, else the student's; the teacher labels every visited state and the student is trained on
 all rounds' data after each round. Sampled, ramped velocity commands, random pushes and action noise widen the states
@@ -32,13 +32,13 @@ from torch import nn
 from bruce_hw.backend import LifecycleState
 from bruce_hw.config import RobotConfig, load_config
 from bruce_hw.mock import MujocoBackend
-from runtime.commands import COMMAND_LIMITS, CommandSchedule
+from runtime.control.commands import COMMAND_LIMITS, CommandSchedule
 from runtime.estimation import GroundTruthEstimator
-from runtime.exit import INTERRUPTS
+from runtime.loop.exit import INTERRUPTS
+from runtime.loop.observers import FallStop, TickObserver, TickView
+from runtime.loop.recorder import portable_path
+from runtime.loop.run import run_session
 from runtime.observation.builder import ObservationBuilder
-from runtime.observers import FallStop, TickObserver, TickView
-from runtime.recorder import portable_path
-from runtime.run import run_session
 from runtime.walking.teacher import WalkingTeacher
 
 
@@ -63,7 +63,7 @@ class DistillSettings:
     epochs: int = 20                       # per round, over the aggregated dataset
     batch_size: int = 1024
     learning_rate: float = 1e-3
-    fall_trim_s: float = 0.5               # s of samples dropped before a fall (runtime.falls) or a safety trip
+    fall_trim_s: float = 0.5               # s of samples dropped before a fall (runtime.loop.falls) or a safety trip
     # Where the student's base state comes from: "truth" (the simulator's) or "kinematic" (the robot-side
     # estimator on the same sensors, runtime.estimation.kinematic). The teacher always labels from the truth.
     observe: str = "truth"
@@ -166,7 +166,7 @@ class DaggerController:
             self.truth = GroundTruthEstimator(self.truth_of)
         self.teacher.reset(q)
         self.builder.reset()
-        self.last_action = np.array(q, dtype=float)  # as runtime.policy.PolicyController starts
+        self.last_action = np.array(q, dtype=float)  # as runtime.control.policy.PolicyController starts
         self.obs: list[np.ndarray] = []
         self.labels: list[np.ndarray] = []
 
@@ -210,9 +210,9 @@ class RandomPushes(TickObserver):
 
 def rollout(config: RobotConfig, settings: DistillSettings, rng: np.random.Generator, beta: float,
             student: StudentPolicy | None) -> EpisodeResult:
-    """One episode in the mock through the runtime's loop (`runtime.run.run_session`: Eq. 8 and the safety stage
+    """One episode in the mock through the runtime's loop (`runtime.loop.run.run_session`: Eq. 8 and the safety stage
     at 1 kHz, as every run): the DAgger controller executes teacher or student per policy tick and labels every
-    one with the teacher's a_t; random pushes; the episode ends at a fall (`runtime.falls`), a safety trip or its
+    one with the teacher's a_t; random pushes; the episode ends at a fall (`runtime.loop.falls`), a safety trip or its
     duration. The labels of its last `fall_trim_s` are dropped when it ends early."""
     backend = MujocoBackend(config)
     commands = sample_commands(settings, rng)

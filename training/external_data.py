@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from bruce_hw.config import RobotConfig
-from runtime.recorder import file_sha256, portable_path
+from runtime.loop.recorder import file_sha256, portable_path
 from training.dataset import Dataset, DatasetError, config_hash, load_dataset
 from training.episodes import episode_runs
 

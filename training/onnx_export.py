@@ -20,7 +20,7 @@ import onnxruntime
 import torch
 from torch import nn
 
-from runtime.recorder import file_sha256
+from runtime.loop.recorder import file_sha256
 
 _FLOAT = onnx.TensorProto.FLOAT
 

@@ -2,7 +2,7 @@
 host's timing policy (reply timeouts, late ticks, data-age checks) can be tried on purpose against a slow device.
 
 The waits are honest wall-clock waits on time.monotonic(): sleep until shortly before the moment, then spin
-(plain sleeps overshoot by tens of microseconds to a millisecond on a loaded machine; runtime/pacing.py does the
+(plain sleeps overshoot by tens of microseconds to a millisecond on a loaded machine; runtime/loop/pacing.py does the
 same), so a real-time host measures the delay it was given. Each bus's emulator waits on its own thread (the pty
 thread that received the request, or the sense board's sender), never holding a lock another bus or the physics
 needs, so a slow bus slows nobody else.

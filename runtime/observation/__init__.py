@@ -6,6 +6,6 @@ offsets, clips, scales, history and joint order applied, for any batch; `builder
 reference that turn measurements into a term's inputs, then the spec's observation. Adding a term: docs/extending.md
 ("Adding an observation term").
 
-Nothing is imported here: `runtime.policy_spec` reads the registry while `builder` reads the spec, and a package that
-imported both would import them in a circle.
+Nothing is imported here: `runtime.control.policy_spec` reads the registry while `builder` reads the spec, and a
+package that imported both would import them in a circle.
 """

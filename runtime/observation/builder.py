@@ -10,11 +10,11 @@ import numpy as np
 
 from bruce_hw.config import RobotConfig
 from bruce_hw.types import RobotState
+from runtime.control.heading import HeadingReference
+from runtime.control.policy_spec import TABLE_ONE, PolicySpec, load_policy_spec
 from runtime.estimation import BaseEstimate
-from runtime.heading import HeadingReference
 from runtime.observation.inputs import ObservationInputs
 from runtime.observation.spec_terms import SpecTerms
-from runtime.policy_spec import TABLE_ONE, PolicySpec, load_policy_spec
 from runtime.walking.gait import GaitClock
 
 

@@ -23,7 +23,7 @@ class ObservationInputs:
     base_angvel: np.ndarray      # (N, 3) base angular velocity, base frame (rad/s)
     base_euler: np.ndarray       # (N, 3) roll, pitch, yaw (rad, ZYX), as estimated
     base_quat: np.ndarray        # (N, 4) base orientation (w, x, y, z)
-    heading_error: np.ndarray    # (N,) yaw minus the heading the command asks for (rad; runtime.heading)
+    heading_error: np.ndarray    # (N,) yaw minus the heading the command asks for (rad; runtime.control.heading)
     last_action: np.ndarray      # (N, n) the previous joint targets (rad), after the action map's scale and offset
     last_raw_action: np.ndarray  # (N, n) the previous network output, after action.clip, before scale and offset
 

@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 
+from runtime.control.policy_spec import ObservationTerm, PolicySpec
 from runtime.observation.inputs import ObservationInputs
 from runtime.observation.registry import OBSERVATION_TERMS
-from runtime.policy_spec import ObservationTerm, PolicySpec
 
 
 class _TermSteps:

@@ -100,7 +100,7 @@ def child_main(fd: int) -> None:
     if hasattr(os, "sched_getaffinity"):
         allowed = sorted(os.sched_getaffinity(0))
         if len(allowed) > 1:
-            os.sched_setaffinity(0, allowed[:-1])  # runtime.realtime pins the loop to the last one
+            os.sched_setaffinity(0, allowed[:-1])  # runtime.loop.realtime pins the loop to the last one
     sender = _Sender(spec, conn)
     try:
         sender.open()

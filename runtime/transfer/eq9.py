@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from bruce_hw.config import PdGains
-from runtime.mixing import eq9_torque
+from runtime.control.mixing import eq9_torque
 from runtime.transfer.interface import TransferScheme
 from runtime.transfer.reference_models import ReferenceModel
 from runtime.transfer.registry import SchemeContext, register_scheme

@@ -31,10 +31,10 @@ import numpy as np
 
 from bruce_hw.config import RobotConfig
 from bruce_hw.types import GroundTruth
+from runtime.control.mixing import eq8_torque
 from runtime.estimation import BaseEstimate, GroundTruthEstimator
 from runtime.estimation.kinematic import EstimatorSnapshot, KinematicEstimator
-from runtime.mixing import eq8_torque
-from runtime.safety import SafetyStage
+from runtime.loop.safety import SafetyStage
 from runtime.transfer.reference_models import foot_spheres, nominal_model, place_from_estimate
 
 

@@ -2,7 +2,7 @@
 
 A reference model maps (q, qd, tau) at tick t to the simulator's (q, qd) at tick t + 1 (`step`). Two kinds:
 
-- `PinnReference`: the committed ONNX PINN (`runtime.inference.OnnxPinn`), its LSTM state carried from call to
+- `PinnReference`: the committed ONNX PINN (`runtime.control.inference.OnnxPinn`), its LSTM state carried from call to
   call, as the paper runs it;
 - `NominalReference`: the nominal MuJoCo model itself, its state set to the given joint state and a base state
   (from the robot's estimate in a robot-faithful run, `place_from_estimate`; from the simulator's truth in a
@@ -26,9 +26,9 @@ from bruce_hw.config import RobotConfig
 from bruce_hw.quaternion import euler_of, roll_pitch_quaternion, rotation_entries
 from bruce_hw.robot_model import BruceModel
 from bruce_hw.types import GroundTruth
+from runtime.control.inference import ModelError, OnnxPinn
 from runtime.estimation import BaseEstimate
 from runtime.estimation.kinematic import FEET
-from runtime.inference import ModelError, OnnxPinn
 
 REFERENCE_MODELS = ("pinn", "nominal")  # transfer.reference_model: the kinds `build_reference` makes
 

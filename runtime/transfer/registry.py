@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from bruce_hw.config import RobotConfig
-from runtime.inference import ModelError
+from runtime.control.inference import ModelError
 from runtime.transfer.interface import TransferScheme
 from runtime.transfer.reference_models import ReferenceModel, build_reference
 

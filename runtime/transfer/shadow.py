@@ -9,7 +9,7 @@ import numpy as np
 
 from bruce_hw.config import PdGains
 from bruce_hw.yaml_reader import Bound
-from runtime.mixing import eq8_torque, eq9_torque
+from runtime.control.mixing import eq8_torque, eq9_torque
 from runtime.transfer.gains import joint_inertia, pd_gains
 from runtime.transfer.interface import TransferScheme
 from runtime.transfer.reference_models import ReferenceModel

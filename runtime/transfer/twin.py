@@ -9,8 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from bruce_hw.yaml_reader import Bound
-from runtime.controllers import build_controller
-from runtime.inference import ModelError
+from runtime.control.controllers import build_controller
+from runtime.control.inference import ModelError
 from runtime.transfer.interface import TransferScheme
 from runtime.transfer.nominal_twin import NominalTwin, TwinInput
 from runtime.transfer.registry import SchemeContext, register_scheme

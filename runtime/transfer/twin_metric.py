@@ -22,9 +22,9 @@ import numpy as np
 
 from bruce_hw.backend import Backend
 from bruce_hw.config import RobotConfig
-from runtime.mixing import eq8_torque
-from runtime.observers import TRACKING_SKIP_S, TickObserver, TickView
-from runtime.safety import SafetyStage, SafetyState
+from runtime.control.mixing import eq8_torque
+from runtime.loop.observers import TRACKING_SKIP_S, TickObserver, TickView
+from runtime.loop.safety import SafetyStage, SafetyState
 from runtime.transfer.reference_models import nominal_model_on_truth
 
 

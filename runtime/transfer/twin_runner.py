@@ -24,7 +24,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from runtime.inference import ModelError
+from runtime.control.inference import ModelError
 from runtime.transfer.nominal_twin import NominalTwin, TwinInput
 
 MAX_BACKLOG_TICKS = 200  # 0.2 s: beyond it the twin's offsets are too old to integrate on a 2 s time constant

@@ -21,8 +21,8 @@ import numpy as np
 
 from bruce_hw.config import RobotConfig
 from bruce_hw.types import GRAVITY, RobotState
+from runtime.control.heading import HeadingReference
 from runtime.estimation import BaseEstimate
-from runtime.heading import HeadingReference
 from runtime.walking.gait import GaitClock, GaitPhase, interpolate, lipm_omega, min_jerk, swing_height
 from runtime.walking.leg_ik import SIDES, leg_geometry, leg_ik
 
@@ -73,7 +73,7 @@ class WalkingTeacher:
         self.config = config
         self.params = p = params or TeacherParams()
         self.dt = 1.0 / config.policy_hz
-        # The gait's clock, the policy observation's (runtime.policy): the same phase for teacher and student.
+        # The gait's clock, the policy observation's (runtime.control.policy): the same phase for teacher and student.
         self.clock = GaitClock(config.models.gait_period_s, self.dt)
         self.model = mujoco.MjModel.from_xml_path(str(config.mjcf))
         self.kin = mujoco.MjData(self.model)
@@ -97,7 +97,8 @@ class WalkingTeacher:
         self.inertial = np.zeros(self.model.nv)
         # Extra stiffness per joint, for both feet down (start-up) and for each stance leg.
         self.boost = {stance_legs: self._boost(stance_legs) for stance_legs in ((0, 1), (0,), (1,))}
-        # Desired base yaw, the policy observation's (runtime.policy): a student sees the error the teacher acts on.
+        # Desired base yaw, the policy observation's (runtime.control.policy): a student sees the error the teacher
+        # acts on.
         self.heading_reference = HeadingReference(self.dt)
         self.reset(config.standing_pose)
 

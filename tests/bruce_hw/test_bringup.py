@@ -17,9 +17,9 @@ import pytest
 
 from bruce_hw.backend import BackendError, LifecycleState
 from bruce_hw.hw import make_hw_backend
-from runtime.exit import ExitCode
-from runtime.observers import TickObserver
-from runtime.run import run_session
+from runtime.loop.exit import ExitCode
+from runtime.loop.observers import TickObserver
+from runtime.loop.run import run_session
 
 pytestmark = pytest.mark.hardware
 

@@ -22,7 +22,7 @@ from bruce_hw.config import BOUNDS, ConfigError, SafetyConfig, parse_config, res
 from bruce_hw.config import bound_for as description_bound_for
 from bruce_hw.reality_gap import GAP_BOUNDS, GapError, load_gap, profile_names
 from bruce_hw.yaml_reader import Bound, apply_overrides
-from runtime.commands import SCENARIO_BOUNDS, CommandSchedule
+from runtime.control.commands import SCENARIO_BOUNDS, CommandSchedule
 from runtime.robot_config import load_config
 from runtime.transfer.stage import settings_for, transfer_bounds
 

@@ -18,7 +18,7 @@ import time
 import pytest
 from support.emulated_robot import BEAR_IDS, DXL_IDS
 
-from runtime.exit import ExitCode
+from runtime.loop.exit import ExitCode
 
 pytestmark = pytest.mark.usefixtures("no_memory_lock")
 STALL_BOUND_S = 0.045

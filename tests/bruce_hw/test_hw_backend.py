@@ -25,9 +25,9 @@ from bruce_hw.bear_legs import actuator_position_limits
 from bruce_hw.config import load_config
 from bruce_hw.emulator_process import FaultAt, reply_time
 from bruce_hw.hw import HwBackend, make_hw_backend, missing_for_hw
-from runtime.exit import ExitCode
-from runtime.observers import TickObserver
-from runtime.run import run_session
+from runtime.loop.exit import ExitCode
+from runtime.loop.observers import TickObserver
+from runtime.loop.run import run_session
 
 pytestmark = pytest.mark.usefixtures("no_memory_lock")
 # Paced, as every hw run is (the legs' bus thread cycles on the loop's writes; an unpaced loop would spin on one

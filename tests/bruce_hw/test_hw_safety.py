@@ -21,8 +21,8 @@ from support.emulated_robot import BEAR_IDS, DXL_IDS, WALL_CLOCK_SLACK
 from bruce_hw import BackendError
 from bruce_hw.emulator_process import FaultAt, reply_time
 from bruce_hw.hw import HwBackend, make_hw_backend
-from runtime.exit import ExitCode, StopFlag
-from runtime.run import run_session
+from runtime.loop.exit import ExitCode, StopFlag
+from runtime.loop.run import run_session
 
 pytestmark = pytest.mark.usefixtures("no_memory_lock")
 DETECTION_SLACK_S = 0.03  # the emulator's plant notices a watchdog on its next 1 ms step; a loaded machine is late

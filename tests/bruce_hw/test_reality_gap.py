@@ -15,9 +15,9 @@ from bruce_hw.mock import CONTACT_THRESHOLD_N, MujocoBackend
 from bruce_hw.reality_gap import GapError, RealityGap, SensorGap, load_gap, profile_names
 from bruce_hw.types import FootContacts, ImuSample, JointCommand, JointState, RobotState
 from runtime.cli import main
-from runtime.commands import CommandSchedule
-from runtime.observers import EachTick
-from runtime.run import run_session
+from runtime.control.commands import CommandSchedule
+from runtime.loop.observers import EachTick
+from runtime.loop.run import run_session
 
 KNEE = 3  # r_knee in the config's joint order
 # The shipped one-factor profiles (configs/gaps/) and the RealityGap fields each sets.

@@ -176,7 +176,7 @@ def test_scenario_sets_the_duration_and_the_summary_has_the_tracking(tmp_path, c
 def test_controller_teacher_runs_the_walking_teacher(monkeypatch, capsys):
     import types
 
-    from runtime.standing import StandingController
+    from runtime.control.standing import StandingController
 
     teacher = types.ModuleType("runtime.walking.teacher")
     teacher.WalkingTeacher = StandingController  # the plumbing only: the real teacher has its own tests

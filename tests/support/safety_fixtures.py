@@ -1,10 +1,10 @@
-"""Robot states and a safety stage past its soft start, for the safety stage's tests (runtime/test_safety.py) and
+"""Robot states and a safety stage past its soft start, for the safety stage's tests (runtime/loop/test_safety.py) and
 the host witness's (bruce_hw/test_host_witness.py)."""
 
 import numpy as np
 
 from bruce_hw.types import FootContacts, ImuSample, JointState, RobotState
-from runtime.safety import SafetyStage, SafetyState
+from runtime.loop.safety import SafetyStage, SafetyState
 
 
 def robot(config, q=None, qd=None, stamp=0.0, orientation=(1.0, 0.0, 0.0, 0.0), estop=False, imu_stamp=None):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bruce_hw.mock import MujocoBackend
-from runtime.commands import COMMAND_AXES
+from runtime.control.commands import COMMAND_AXES
 from training.collect import POLICY_CLIP, SAMPLE_BOX, CollectError, CollectSettings, collect, main
 from training.dataset import config_hash, load_dataset
 from training.episodes import transition_indices

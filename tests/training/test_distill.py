@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from runtime.commands import limit_violation
-from runtime.inference import OnnxPolicy
+from runtime.control.commands import limit_violation
+from runtime.control.inference import OnnxPolicy
 from runtime.observation.builder import ObservationBuilder
 from runtime.walking.gait import GaitClock
 from training.distill import DistillSettings, distill, rollout, sample_commands

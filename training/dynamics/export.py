@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from runtime.recorder import file_sha256
+from runtime.loop.recorder import file_sha256
 from training.dynamics.checkpoint import kind_of
 from training.dynamics.lstm_baseline import LstmStep
 from training.dynamics.pinn import PinnStep
@@ -66,8 +66,8 @@ def rollout_parity(model: nn.Module, path: str | Path, inputs: Sequence[np.ndarr
     state (relative to max(1, |value|): an LSTM's cell state grows to tens, where float32 resolves ~2e-6). The
     inputs are shared rather than fed back: a learnt model run open loop amplifies float32 rounding like any
     chaotic system, so a fed-back comparison measures its Lyapunov exponent, not the export. The session is the
-    runtime's (`runtime.inference.open_session`)."""
-    from runtime.inference import open_session
+    runtime's (`runtime.control.inference.open_session`)."""
+    from runtime.control.inference import open_session
 
     session = open_session(path, "dynamics")
     names = [i.name for i in session.get_inputs()]  # q, qd, tau, then the state: the export's checked order

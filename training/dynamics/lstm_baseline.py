@@ -5,7 +5,7 @@
 
 Same interface, size and training as `training.dynamics.pinn.PinnStep` (one tick for [B, n] inputs, a
 teacher-forced window for [W, B, n]; LSTM state explicit; exported with the PINN's tensor names, so
-`runtime.inference.OnnxPinn` runs it too). The head's outputs are scaled to the increments' training spread: dqd
+`runtime.control.inference.OnnxPinn` runs it too). The head's outputs are scaled to the increments' training spread: dqd
 by the spread of qd' - qd, and dq by qd_std * dt (q' - q is mostly qd dt at 1 kHz). Parameters: 115,508 at the
 paper's sizes vs the PINN's 123,055.
 """

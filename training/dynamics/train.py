@@ -29,7 +29,7 @@ from torch import nn
 from tqdm import tqdm
 
 from bruce_hw.config import ConfigError, load_config
-from runtime.recorder import file_sha256
+from runtime.loop.recorder import file_sha256
 from training.dataset import (
     Dataset,
     DatasetError,

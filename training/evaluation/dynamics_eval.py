@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from bruce_hw.config import RobotConfig
-from runtime.recorder import file_sha256
+from runtime.loop.recorder import file_sha256
 from training.dataset import load_dataset, split_by_time
 from training.dynamics.checkpoint import load_model_checkpoint
 from training.episodes import episode_runs, run_indices

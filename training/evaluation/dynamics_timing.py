@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from runtime.recorder import file_sha256
+from runtime.loop.recorder import file_sha256
 from training.dynamics.checkpoint import MODEL_KINDS
 from training.dynamics.export import rollout_parity
 from training.evaluation.dynamics_eval import EvalData, EvalError, LoadedModel
@@ -45,12 +45,12 @@ class TorchTick:
 
 class BoundOnnxTick:
     """One `run_with_iobinding` on fixed float32 buffers; every input X with an output X_next is recurrent state,
-    ping-ponged between two bindings like `runtime.inference.OnnxPinn`."""
+    ping-ponged between two bindings like `runtime.control.inference.OnnxPinn`."""
 
     def __init__(self, path: Path, q: np.ndarray, qd: np.ndarray, tau: np.ndarray):
         import onnxruntime as ort
 
-        from runtime.inference import open_session
+        from runtime.control.inference import open_session
 
         self.session = open_session(path, "dynamics")
         given = {"q": q, "qd": qd, "tau": tau}
@@ -94,14 +94,14 @@ def onnx_tick(path: Path, n_joints: int, q: np.ndarray, qd: np.ndarray, tau: np.
     """The runtime's `OnnxPinn.step` where the file has the PINN signature, else a `BoundOnnxTick`."""
     import onnxruntime as ort
 
-    from runtime.inference import OnnxPinn, session_options
+    from runtime.control.inference import OnnxPinn, session_options
 
     session = ort.InferenceSession(str(path), session_options(), providers=["CPUExecutionProvider"])
     names = (tuple(t.name for t in session.get_inputs()), tuple(t.name for t in session.get_outputs()))
     if names == PINN_SIGNATURE:
         pinn = OnnxPinn(path, n_joints)
         pinn.warmup(10)
-        return (lambda: pinn.step(q, qd, tau)), "runtime.inference.OnnxPinn.step"
+        return (lambda: pinn.step(q, qd, tau)), "runtime.control.inference.OnnxPinn.step"
     return BoundOnnxTick(path, q, qd, tau), "run_with_iobinding (bound buffers)"
 
 

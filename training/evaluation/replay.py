@@ -1,5 +1,5 @@
-"""`bruce-eval replay`'s analysis: a recorded run (`bruce-run --record DIR`, runtime/recorder.py, read by `load_log`)
-against the nominal simulator and the PINN, the numbers of the paper's Fig. 6 comparison for that run
+"""`bruce-eval replay`'s analysis: a recorded run (`bruce-run --record DIR`, runtime/loop/recorder.py, read by
+`load_log`) against the nominal simulator and the PINN, the numbers of the paper's Fig. 6 comparison for that run
 (docs/replay.md). The command is `training.evaluation.replay_cli`, the figure and the tables `replay_report`.
 
 1. Closed loop: the nominal mock (no gap, Eq. 8 alone) runs the log's controller on the log's own command sequence
@@ -24,7 +24,7 @@ import numpy as np
 
 from bruce_hw.config import RobotConfig
 from bruce_hw.types import GroundTruth
-from runtime.recorder import LOG_FORMAT, LOG_VERSION, META_FILE, RunRecorder, describe_run
+from runtime.loop.recorder import LOG_FORMAT, LOG_VERSION, META_FILE, RunRecorder, describe_run
 from training.evaluation.transfer_metrics import joint_rmse, offset_and_shape
 
 WINDOW_S = 1.0          # the traces' window, as the paper's Fig. 6 (bruce-eval transfer shows 10 to 11 s)
@@ -158,7 +158,7 @@ def aligned(robot: RunLog, simulation: RunLog) -> tuple[Traces, Traces]:
 def simulate(log: RunLog, config: RobotConfig, out: Path, policy: Path | None) -> RunLog:
     """The nominal simulator, closed loop, on the log's commands and controller, recorded into `out`."""
     from bruce_hw.mock import MujocoBackend
-    from runtime.run import run_session
+    from runtime.loop.run import run_session
 
     meta = log.meta
     controller = meta.get("controller") or "policy"
@@ -212,7 +212,7 @@ def transitions(log: RunLog) -> np.ndarray:
 def pinn_one_step(log: RunLog, pinn_path: Path) -> np.ndarray:
     """[T, 2, n]: row i + 1's (q, qd) as the PINN predicts it from row i under the torque written (NaN where row
     i + 1 is not the next tick); the LSTM state is carried along consecutive ticks and reset at a break."""
-    from runtime.inference import OnnxPinn
+    from runtime.control.inference import OnnxPinn
 
     q, qd, tau = log.column("q"), log.column("qd"), log.column("tau")
     pinn = OnnxPinn(pinn_path, q.shape[1])
@@ -285,7 +285,7 @@ def forward_velocity(log: RunLog) -> np.ndarray | None:
     """The base's forward velocity in its heading frame (simulator logs: from the truth), every 10th row."""
     if not log.has("base_linvel"):
         return None
-    from runtime.observers import heading_velocity
+    from runtime.loop.observers import heading_velocity
 
     quat, linvel, angvel = log.column("base_quat"), log.column("base_linvel"), log.column("base_angvel")
     return np.array([heading_velocity(GroundTruth(0.0, np.zeros(3), quat[i], linvel[i], angvel[i]))[0]

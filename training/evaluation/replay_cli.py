@@ -1,5 +1,5 @@
-"""`bruce-eval replay --log DIR`: a recorded run (`bruce-run --record DIR`, runtime/recorder.py) against the nominal
-simulator and the PINN: the paper's Fig. 6 comparison for that run (docs/replay.md).
+"""`bruce-eval replay --log DIR`: a recorded run (`bruce-run --record DIR`, runtime/loop/recorder.py) against the
+nominal simulator and the PINN: the paper's Fig. 6 comparison for that run (docs/replay.md).
 
 The sub-command's parser and the command: it resolves the config and the models the log names, runs the analysis
 (`training.evaluation.replay`) and writes DIR/replay.json (every figure), DIR/replay.md (the tables) and
@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from bruce_hw.config import ConfigError, RobotConfig
-from runtime.recorder import META_FILE, file_sha256
+from runtime.loop.recorder import META_FILE, file_sha256
 from runtime.robot_config import load_config
 from training.evaluation.replay import (
     LogError,
@@ -171,7 +171,7 @@ def replay(args, argv: list[str]) -> dict:
 
 
 def run_replay(args, argv: list[str]) -> int:
-    from runtime.inference import ModelError
+    from runtime.control.inference import ModelError
 
     try:
         report = replay(args, argv)

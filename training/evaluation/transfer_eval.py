@@ -22,8 +22,8 @@ from pathlib import Path
 
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, resolve_config_path
 from bruce_hw.reality_gap import GapError, RealityGap, latency_ticks, load_gap
-from runtime.observers import TRACKING_SKIP_S
-from runtime.policy_spec import policy_spec_for
+from runtime.control.policy_spec import policy_spec_for
+from runtime.loop.observers import TRACKING_SKIP_S
 from runtime.robot_config import load_config
 from runtime.transfer.reference_models import REFERENCE_MODELS
 from runtime.transfer.registry import listed_schemes, scheme_names

@@ -8,8 +8,8 @@ import math
 
 import numpy as np
 
-from runtime.commands import CommandSchedule
-from runtime.observers import TRACKING_SKIP_S
+from runtime.control.commands import CommandSchedule
+from runtime.loop.observers import TRACKING_SKIP_S
 from training.evaluation.transfer_runs import Experiment, RunRecord
 
 

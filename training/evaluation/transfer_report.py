@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from runtime.observers import TRACKING_SKIP_S
+from runtime.loop.observers import TRACKING_SKIP_S
 from training.evaluation.transfer_acceptance import BARS, recommended
 from training.evaluation.transfer_metrics import ideal_path
 from training.evaluation.transfer_runs import LOOKAHEAD_MODE, MODE_NAMES, mode_label

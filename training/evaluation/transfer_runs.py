@@ -1,5 +1,5 @@
 """One run of the transfer rehearsal (`bruce-eval transfer`): what it is (`RunSpec`: experiment, command, mode, gap,
-seed), how it runs (`run_one`: a fresh mock through `runtime.run.run_session`, the simulator's truth recorded by an
+seed), how it runs (`run_one`: a fresh mock through `runtime.loop.run.run_session`, the simulator's truth recorded by an
 observer) and what it leaves (`RunRecord`). Modes name a transfer scheme, or SCHEME@nominal, its perfect-model
 control."""
 
@@ -13,9 +13,9 @@ import numpy as np
 from bruce_hw.config import DEFAULT_CONFIG, PdGains, load_config
 from bruce_hw.quaternion import euler_of
 from bruce_hw.reality_gap import RealityGap
-from runtime.commands import CommandSchedule
-from runtime.exit import INTERRUPTS
-from runtime.observers import TickObserver, heading_velocity
+from runtime.control.commands import CommandSchedule
+from runtime.loop.exit import INTERRUPTS
+from runtime.loop.observers import TickObserver, heading_velocity
 
 MODES = ("direct", "pinn")
 LOOKAHEAD_MODE = "pinn_ahead"  # Eq. 9 with the reference rolled ahead over the gap's latency (not the paper's)
@@ -117,7 +117,7 @@ class _TruthRecorder(TickObserver):
 def run_one(spec: RunSpec) -> RunRecord:
     """One run of `spec` in a fresh mock; module-level so that a process pool can call it."""
     from bruce_hw.mock import MujocoBackend
-    from runtime.run import run_session
+    from runtime.loop.run import run_session
     from runtime.transfer.twin_metric import TwinMetric
 
     scheme, model = scheme_of(spec.mode)

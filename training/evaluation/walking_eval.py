@@ -25,8 +25,8 @@ def walk_point(config_path: str, overrides: list[str], controller: str, command:
                seconds: float) -> dict:
     """One grid point: fell, the tracking error per axis, and whether it passes."""
     from bruce_hw.mock import MujocoBackend
-    from runtime.commands import CommandSchedule
-    from runtime.run import run_session
+    from runtime.control.commands import CommandSchedule
+    from runtime.loop.run import run_session
 
     config = load_config(config_path, overrides)
     summary = run_session(MujocoBackend(config), config, duration=seconds, realtime=False,

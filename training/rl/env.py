@@ -6,7 +6,7 @@ draws a randomisation (`randomisation`), a command (resampled now and then) and 
 one the policy spec `env.policy_spec` asks for (default Table I, configs/robots/policy_specs/table1.yaml), built by
 the runtime's `ObservationBuilder` (batched) of the simulator's truth as `GroundTruthEstimator` reports it, plus the
 episode's observation noise; the critic's adds Table I's privileged state. An env ends on the runtime's fall rule
-(`runtime.falls`) or at the time-out and restarts inside `step`.
+(`runtime.loop.falls`) or at the time-out and restarts inside `step`.
 """
 
 from __future__ import annotations
@@ -26,11 +26,11 @@ from bruce_hw.config import ConfigError, RobotConfig
 from bruce_hw.quaternion import euler_rows, quaternion_rows, rotation_entries
 from bruce_hw.robot_model import CONTACT_THRESHOLD_N, standing_height
 from bruce_hw.yaml_reader import Bound, YamlReader
-from runtime.commands import COMMAND_LIMITS
-from runtime.falls import fallen
+from runtime.control.commands import COMMAND_LIMITS
+from runtime.control.policy_spec import TABLE_ONE, PolicySpec, load_policy_spec
+from runtime.loop.falls import fallen
+from runtime.loop.run import target_bounds
 from runtime.observation.builder import ObservationBuilder
-from runtime.policy_spec import TABLE_ONE, PolicySpec, load_policy_spec
-from runtime.run import target_bounds
 from runtime.walking.gait import gait_phase, swing_height
 from runtime.walking.teacher import TeacherParams
 from training.rl import rewards
@@ -52,7 +52,7 @@ def _setting(key: str, default: Any, bound: Bound, kind: str = "number") -> Any:
 
 def _command_bound(axis: str, unit: str) -> Bound:
     low, high = COMMAND_LIMITS[axis]
-    return Bound(low, high, unit, "the walking controllers' range (runtime.commands.COMMAND_LIMITS)")
+    return Bound(low, high, unit, "the walking controllers' range (runtime.control.commands.COMMAND_LIMITS)")
 
 
 @dataclass(frozen=True)
@@ -86,7 +86,7 @@ class WalkEnvConfig:
     push_duration_s: float = _setting("pushes.duration_s", 0.1, Bound(0.01, 1.0, "s", "whole policy periods"))
     randomisation: RandomisationRanges = field(default_factory=RandomisationRanges)
     # The actor's observation (and how the exported policy's output becomes targets): a spec file, or the name of
-    # a shipped one (configs/robots/policy_specs/); runtime/policy_spec.py, docs/byo_policy.md.
+    # a shipped one (configs/robots/policy_specs/); runtime/control/policy_spec.py, docs/byo_policy.md.
     policy_spec: str = TABLE_ONE
 
     def __post_init__(self) -> None:
@@ -175,7 +175,7 @@ class BaseTruth:
     angvel: np.ndarray       # (N, 3) base frame
     euler: np.ndarray        # (N, 3) roll, pitch, yaw (ZYX)
     heading_linvel: np.ndarray  # (N, 3) linear velocity in the heading (yaw-only) frame
-    fallen: np.ndarray       # (N,) runtime.falls' rule
+    fallen: np.ndarray       # (N,) runtime.loop.falls' rule
     q: np.ndarray            # (N, n_joints)
     qd: np.ndarray
 
@@ -465,7 +465,7 @@ class BruceWalkEnv:
         state[:, self._act] = q  # the target filter starts settled at the pose
         self.state[envs] = state
         self.builder.reset(envs)
-        self.last_action[envs] = q  # as runtime.policy.PolicyController starts
+        self.last_action[envs] = q  # as runtime.control.policy.PolicyController starts
         self.last_action2[envs] = q
         self.last_raw_action[envs] = 0.0  # as PolicyController starts: no action yet (legged_gym, Isaac Lab)
         self._qd_prev[envs] = 0.0

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from runtime.policy_spec import PolicySpec
+from runtime.control.policy_spec import PolicySpec
 from training.onnx_export import export_mlp_policy_onnx, sidecar_path
 
 
@@ -57,8 +57,8 @@ def export_policy(actor: nn.Module, path: str | Path, obs_dim: int, standing: np
                   spec: PolicySpec | None = None, spec_tree: Mapping | None = None) -> Path:
     """Write the ONNX policy and add `record` (command, seed, config, data hashes, training figures) to its
     sidecar under "rl", the command ranges it was trained on (vx, vy, wz: low, high) under "commands", which
-    bruce-run checks a command against (`runtime.policy_spec.trained_commands`), and `spec_tree` (the spec file's
-    YAML tree, of `spec`, the spec it was trained on) under "policy_spec"."""
+    bruce-run checks a command against (`runtime.control.policy_spec.trained_commands`), and `spec_tree` (the spec
+    file's YAML tree, of `spec`, the spec it was trained on) under "policy_spec"."""
     model = DeployedPolicy(actor, standing, action_scale, spec).eval()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

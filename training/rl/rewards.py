@@ -69,8 +69,8 @@ def phi(w: float, e: np.ndarray) -> np.ndarray:
 
 
 def yaw_rate(step: WalkStep) -> np.ndarray:
-    """(N,) world-z rate of the base, what the yaw-rate command means (runtime.observers.heading_velocity): the base
-    angular velocity dotted with the world's z axis in the base frame."""
+    """(N,) world-z rate of the base, what the yaw-rate command means (runtime.loop.observers.heading_velocity): the
+    base angular velocity dotted with the world's z axis in the base frame."""
     return world_yaw_rate(step.base_euler, step.base_angvel)
 
 

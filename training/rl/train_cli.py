@@ -29,8 +29,8 @@ import yaml
 
 from bruce_hw.config import DEFAULT_CONFIG, ConfigError, load_config
 from bruce_hw.yaml_reader import read_yaml
-from runtime.policy_spec import spec_file
-from runtime.recorder import file_sha256, portable_path
+from runtime.control.policy_spec import spec_file
+from runtime.loop.recorder import file_sha256, portable_path
 from training.executor import Executor, ExecutorError, add_executor_arguments, make_executor
 from training.rl.train_config import DEFAULT_TRAINING_CONFIG, TrainingConfig, TrainingConfigError, load_training_config
 

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from runtime.inference import OnnxPolicy
+from runtime.control.inference import OnnxPolicy
 from training.rl.ppo_loop import IterationStats, PolicyTrainer
 from training.rl.vec_env import RslVecEnv
 

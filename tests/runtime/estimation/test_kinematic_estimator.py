@@ -11,12 +11,12 @@ from bruce_hw.attitude import MahonyAttitude
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.quaternion import euler_of, rotate_to_body
 from bruce_hw.types import FootContacts, ImuSample, JointCommand, JointState, RobotState
-from runtime.commands import CommandSchedule
+from runtime.control.commands import CommandSchedule
+from runtime.control.mixing import eq8_torque
+from runtime.control.standing import StandingController
 from runtime.estimation import GroundTruthEstimator
 from runtime.estimation.kinematic import IMU_DELAY_S, KinematicEstimator
-from runtime.mixing import eq8_torque
-from runtime.run import run_session
-from runtime.standing import StandingController
+from runtime.loop.run import run_session
 
 GRAVITY = 9.81
 # A MEMS IMU after a factory calibration, and encoder-differentiated joint velocities (per 1 kHz sample).

@@ -13,9 +13,9 @@ import yaml
 
 from bruce_hw.config import load_config
 from bruce_hw.mock import MujocoBackend
-from runtime.commands import CommandSchedule
+from runtime.control.commands import CommandSchedule
+from runtime.loop.run import run_session
 from runtime.observation.registry import OBSERVATION_TERMS
-from runtime.run import run_session
 
 SCALE = 2.0
 # clock 2, tracking_error 2 frames x 10 joints, q 10
@@ -74,7 +74,7 @@ class Recording:
 
 
 def test_the_new_term_reaches_the_runtime_observation(example_term, spec_path, tracking_policy):
-    from runtime.controllers import build_controller
+    from runtime.control.controllers import build_controller
 
     config = load_config(overrides=[f"policy.spec={spec_path}"])
     controller, name = build_controller(config, tracking_policy)

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from runtime.control.policy_spec import load_policy_spec, parse_policy_spec
 from runtime.observation.builder import ObservationBuilder
 from runtime.observation.registry import OBSERVATION_TERMS, PER_JOINT, register_term
-from runtime.policy_spec import load_policy_spec, parse_policy_spec
 
 
 @pytest.fixture

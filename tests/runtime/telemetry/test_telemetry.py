@@ -539,7 +539,7 @@ def test_a_host_stall_is_an_event_on_the_timeline(tmp_path):
     (here a backend whose witness reports 10 ms not run before its 100th reading: within the bound, ridden through)."""
     from bruce_hw import load_config
     from bruce_hw.echo import EchoBackend
-    from runtime.run import run_session
+    from runtime.loop.run import run_session
 
     class StalledOnce(EchoBackend):
         host_witness = True

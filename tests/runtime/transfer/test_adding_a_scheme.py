@@ -14,9 +14,9 @@ import yaml
 from bruce_hw.config import ConfigError, resolve_config_path
 from bruce_hw.mock import MujocoBackend
 from runtime.cli import main as bruce_run
-from runtime.commands import CommandSchedule
+from runtime.control.commands import CommandSchedule
+from runtime.loop.run import run_session
 from runtime.robot_config import load_config
-from runtime.run import run_session
 from runtime.transfer.registry import scheme_names, unregister_scheme
 from runtime.transfer.stage import settings_for, transfer_bounds
 

@@ -8,8 +8,8 @@ import pytest
 
 from bruce_hw.config import load_config
 from bruce_hw.mock import MujocoBackend
-from runtime.commands import CommandSchedule
-from runtime.run import run_session
+from runtime.control.commands import CommandSchedule
+from runtime.loop.run import run_session
 from runtime.transfer.gap_monitor import GapMonitor
 from runtime.transfer.stage import settings_for
 

@@ -18,12 +18,12 @@ from bruce_hw.backend import TruthSealed
 from bruce_hw.config import load_config
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.reality_gap import load_gap
-from runtime.commands import CommandSchedule
+from runtime.control.commands import CommandSchedule
 from runtime.estimation import BaseEstimate
 from runtime.estimation.kinematic import KinematicEstimator
-from runtime.exit import ExitCode
-from runtime.observers import TickObserver
-from runtime.run import run_session
+from runtime.loop.exit import ExitCode
+from runtime.loop.observers import TickObserver
+from runtime.loop.run import run_session
 from runtime.transfer import twin as twin_scheme
 from runtime.transfer.reference_models import foot_spheres, lowest_point, nominal_model, place_from_estimate
 from runtime.transfer.twin_runner import ThreadTwinRunner

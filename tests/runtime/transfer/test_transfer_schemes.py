@@ -10,9 +10,9 @@ import pytest
 from bruce_hw.config import ConfigError, PdGains, parse_config
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.types import JointCommand
+from runtime.control.inference import ModelError
+from runtime.control.mixing import eq8_torque
 from runtime.estimation.kinematic import KinematicEstimator
-from runtime.inference import ModelError
-from runtime.mixing import eq8_torque
 from runtime.robot_config import load_config
 from runtime.transfer.eq9 import Eq9Scheme
 from runtime.transfer.gains import joint_inertia, observer_gain, pd_crossover, pd_gains, shortest_observer_time_constant
@@ -353,9 +353,9 @@ def test_pinn_residual_bias_is_per_joint_bounded_and_reaches_the_observer():
 
 
 def test_transfer_pinn_and_eq9_are_the_same_run():
-    from runtime.commands import CommandSchedule
-    from runtime.observers import EachTick
-    from runtime.run import run_session
+    from runtime.control.commands import CommandSchedule
+    from runtime.loop.observers import EachTick
+    from runtime.loop.run import run_session
 
     config = load_config()
     torques = {}
@@ -561,9 +561,9 @@ def run_with_twin(config, gap, ticks, faithful=False, differential=True):
     """The run loop's stages by hand (read, policy every 10th tick, Eq. 8, the scheme, safety, write) with the `twin`
     scheme, its twin resynchronised from the simulator's truth or (`faithful`) from the robot's kinematic estimator;
     per tick the twin's posture error and the integral."""
-    from runtime.controllers import build_controller
+    from runtime.control.controllers import build_controller
     from runtime.estimation import GroundTruthEstimator
-    from runtime.safety import SafetyStage
+    from runtime.loop.safety import SafetyStage
 
     backend = MujocoBackend(config, gap=gap)
     backend.configure()

@@ -6,10 +6,10 @@ import pytest
 
 from bruce_hw.config import load_config
 from bruce_hw.mock import MujocoBackend
-from runtime.commands import CommandSchedule
+from runtime.control.commands import CommandSchedule
 from runtime.estimation import GroundTruthEstimator
 from runtime.estimation.kinematic import KinematicEstimator
-from runtime.run import run_session
+from runtime.loop.run import run_session
 from training.evaluation.walking_eval import GRID, TRACKING_LIMIT
 
 
@@ -72,7 +72,7 @@ class PushedAt:
 @pytest.mark.parametrize("kind", ["teacher", "policy"])
 @pytest.mark.parametrize("side", [1.0, -1.0])
 def test_a_lateral_push_while_walking_is_survived(config, kind, side):
-    from runtime.controllers import build_controller
+    from runtime.control.controllers import build_controller
 
     backend = MujocoBackend(config)
     controller, _ = build_controller(config, None, kind)

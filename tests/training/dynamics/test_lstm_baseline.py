@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from runtime.inference import OnnxPinn
+from runtime.control.inference import OnnxPinn
 from training.dataset import DatasetStats
 from training.dynamics.export import export_pinn_onnx
 from training.dynamics.lstm_baseline import LstmConfig, LstmStep

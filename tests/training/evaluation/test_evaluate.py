@@ -331,7 +331,7 @@ def test_the_cli_writes_json_markdown_and_figures(tmp_path, monkeypatch, capsys,
 
     compute = report["compute"]
     assert compute["pinn"]["torch"]["p50_us"] > 0 and compute["pinn"]["torch"]["mode"] == "inference_mode"
-    assert compute["pinn"]["ort"]["call"] == "runtime.inference.OnnxPinn.step"
+    assert compute["pinn"]["ort"]["call"] == "runtime.control.inference.OnnxPinn.step"
     assert compute["pinn"]["ort"]["parity_max_abs"] <= 1e-5
     assert "ort" not in compute["euler"]  # no exporter for this kind
     assert list(report["models"]) == ["pinn", "euler"]

@@ -14,11 +14,11 @@ import pytest
 from bruce_hw.backend import BackendError
 from bruce_hw.mock import MujocoBackend
 from runtime.cli import main as bruce_run
-from runtime.commands import CommandSchedule
-from runtime.exit import ExitCode
-from runtime.observers import EachTick
-from runtime.recorder import ROWS_FILE, RunRecorder, describe_run
-from runtime.run import run_session
+from runtime.control.commands import CommandSchedule
+from runtime.loop.exit import ExitCode
+from runtime.loop.observers import EachTick
+from runtime.loop.recorder import ROWS_FILE, RunRecorder, describe_run
+from runtime.loop.run import run_session
 from training.evaluation.cli import main as bruce_eval
 from training.evaluation.replay import LoggedCommands, load_log
 
@@ -191,7 +191,7 @@ def test_the_recording_is_bounded_and_the_run_goes_on(tmp_path, caplog):
 
 
 def test_a_disk_that_falls_behind_drops_rows_and_never_blocks_the_loop(tmp_path, config, monkeypatch):
-    import runtime.recorder as recorder_module
+    import runtime.loop.recorder as recorder_module
 
     release = threading.Event()
     sync = recorder_module.os.fsync

@@ -306,15 +306,15 @@ def test_a_cached_record_reads_back_with_its_fall(tmp_path, fall_time):
 def test_a_run_cut_short_by_a_signal_is_not_a_result(monkeypatch):
     """SIGTERM to a worker ends its session through damping with stop cause "SIGTERM": run_one must not hand that
     back as a finished run (it would be cached, and a resumed suite would score a 0.3-s run)."""
-    import runtime.run
-    from runtime.run import RunSummary
+    import runtime.loop.run
+    from runtime.loop.run import RunSummary
 
     def stopped(backend, config, **kwargs):
         summary = RunSummary(backend="mock")
         summary.stop_cause = "SIGTERM"
         return summary
 
-    monkeypatch.setattr(runtime.run, "run_session", stopped)
+    monkeypatch.setattr(runtime.loop.run, "run_session", stopped)
     spec = RunSpec("tracking", (0.4, 0.0, 0.0), 1.0, "direct", load_gap("default"))
     with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
         transfer_runs.run_one(spec)

@@ -11,10 +11,10 @@ import yaml
 
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.types import FootContacts, GroundTruth, ImuSample, JointCommand, JointState, RobotState
+from runtime.control.heading import wrap_angle
+from runtime.control.mixing import eq8_torque
 from runtime.estimation import GroundTruthEstimator
-from runtime.falls import has_fallen
-from runtime.heading import wrap_angle
-from runtime.mixing import eq8_torque
+from runtime.loop.falls import has_fallen
 from runtime.observation.builder import ObservationBuilder
 from runtime.walking.gait import gait_phase, swing_height
 from runtime.walking.teacher import TeacherParams, WalkingTeacher
@@ -398,7 +398,7 @@ def test_the_added_tracking_inputs_follow_the_velocity_and_the_heading(config):
             v = np.concatenate([truth.heading_linvel[:, :2], world_yaw_rate(truth.euler, truth.angvel)[:, None]], 1)
             expected += env.dt / MEAN_VELOCITY_S * (v - expected)
         np.testing.assert_allclose(steps[-1].mean_velocity, expected, atol=1e-12)
-        from runtime.heading import wrap_angle
+        from runtime.control.heading import wrap_angle
         np.testing.assert_allclose(steps[-1].heading_error, wrap_angle(truths[-1].euler[:, 2] - reference),
                                    atol=1e-12)
         env._reset(np.array([1]))

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from bruce_hw.config import load_config
-from runtime.inference import OnnxPolicy
+from runtime.control.inference import OnnxPolicy
 from training.rl.env import BruceWalkEnv
 from training.rl.export import export_policy
 from training.rl.ppo_loop import PolicyTrainer
@@ -208,8 +208,8 @@ def test_a_policy_trained_on_another_spec_runs_with_it(tmp_path, capsys):
     import onnxruntime as ort
     import yaml
 
-    from runtime.controllers import build_controller
-    from runtime.policy_spec import spec_file
+    from runtime.control.controllers import build_controller
+    from runtime.control.policy_spec import spec_file
 
     tree = yaml.safe_load(spec_file("legged_gym").read_text())
     del tree["rate_hz"], tree["action"]["clip"]  # training steps at rates.policy_hz and does not clip the output

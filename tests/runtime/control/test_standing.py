@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from bruce_hw import make_backend
-from runtime.run import run_session
-from runtime.standing import StandingController
+from runtime.control.standing import StandingController
+from runtime.loop.run import run_session
 
 
 def test_mock_stands_for_10_s_within_2_cm_of_the_nominal_height(config, tmp_path):

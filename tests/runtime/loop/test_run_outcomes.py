@@ -14,9 +14,9 @@ import pytest
 
 from bruce_hw.mock import MujocoBackend
 from runtime.cli import main
-from runtime.exit import ExitCode, StopFlag
-from runtime.inference import ModelError
-from runtime.run import run_session
+from runtime.control.inference import ModelError
+from runtime.loop.exit import ExitCode, StopFlag
+from runtime.loop.run import run_session
 
 
 class ActivationSpy(MujocoBackend):

@@ -2,7 +2,7 @@ import numpy as np
 import onnxruntime as ort
 import pytest
 
-from runtime.inference import ModelError, OnnxPinn, OnnxPolicy
+from runtime.control.inference import ModelError, OnnxPinn, OnnxPolicy
 from runtime.observation.builder import ObservationBuilder
 
 

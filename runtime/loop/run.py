@@ -4,12 +4,12 @@ Start-up follows the robot: configure (inactive, reads only) -> load and check t
 sessions -> read the measured pose -> start telemetry -> ask for real-time scheduling -> activate -> loop.
 A tick: read -> safety triggers -> policy (once per policy period on the backend's clock) -> Eq. 8 -> transfer scheme
 (runtime/transfer/: direct, the paper's Eq. 9 on the PINN, ...; with a reference model, the gap monitor
-scores its last prediction) -> safety filter -> write -> telemetry -> observers (`runtime.observers`: evaluation
+scores its last prediction) -> safety filter -> write -> telemetry -> observers (`runtime.loop.observers`: evaluation
 and recording, outside every timed section; they may end the run, never change what is sent). A trip of the safety
 stage (or SIGINT/SIGTERM) puts the backend into its damping state at once and holds it for `safety.damping_hold_s`
 while still reading; the end of `--duration` shuts the backend down (through damping). The nominal controller is
 the ONNX policy, the model-based walking teacher or the standing controller (`CONTROLLERS`); a command schedule
-(`runtime.commands`) gives it its velocity command on every policy tick. Every exit prints a summary and,
+(`runtime.control.commands`) gives it its velocity command on every policy tick. Every exit prints a summary and,
 with `--stats`, writes it as JSON; on the mock it includes the ground truth the observers gathered: height, fall,
 and how well the base velocity tracked the command. Garbage collection is frozen and disabled inside the loop:
 the loop's allocations are acyclic and freed by reference counting.
@@ -35,18 +35,18 @@ from bruce_hw.backend import Backend, BackendError, LifecycleState
 from bruce_hw.config import RobotConfig
 from bruce_hw.io_priority import above_the_caller
 from bruce_hw.types import JointCommand, RobotState
-from runtime.controllers import build_controller
+from runtime.control.controllers import build_controller
+from runtime.control.inference import ModelError, OnnxPinn
+from runtime.control.mixing import eq8_torque
 from runtime.estimation import Estimator, GroundTruthEstimator, tilt_angle
 from runtime.estimation.estimators import make_estimator
-from runtime.exit import FAULT_CLASSES, NOTHING_ENABLED, ExitCode, StopFlag, StopRequested
-from runtime.falls import FALL_TILT_RAD
-from runtime.inference import ModelError, OnnxPinn
-from runtime.loopstats import LoopStats
-from runtime.mixing import eq8_torque
-from runtime.observers import GroundTruthLog, TickObserver, TickView, ground_truth_observers
-from runtime.pacing import Pacer
-from runtime.realtime import RealtimeGrant, request_realtime
-from runtime.safety import SafetyStage, SafetyState
+from runtime.loop.exit import FAULT_CLASSES, NOTHING_ENABLED, ExitCode, StopFlag, StopRequested
+from runtime.loop.falls import FALL_TILT_RAD
+from runtime.loop.loopstats import LoopStats
+from runtime.loop.observers import GroundTruthLog, TickObserver, TickView, ground_truth_observers
+from runtime.loop.pacing import Pacer
+from runtime.loop.realtime import RealtimeGrant, request_realtime
+from runtime.loop.safety import SafetyStage, SafetyState
 from runtime.transfer.gap_monitor import GapMonitor
 from runtime.transfer.interface import TransferScheme
 from runtime.transfer.schemes import build_scheme
@@ -79,7 +79,7 @@ class RunSummary:
     realtime_grant: RealtimeGrant | None = None
     truth: GroundTruthLog | None = None
     exit_code: int = ExitCode.OK
-    fault_class: str | None = None   # input, safety, bus, internal (runtime.exit.ExitCode); None: a normal end
+    fault_class: str | None = None   # input, safety, bus, internal (runtime.loop.exit.ExitCode); None: a normal end
     link: dict | None = None         # the backend's bus figures (hw: cycles, lost replies per ID)
     gap: GapMonitor | None = None    # the live gap monitor, with a transfer scheme that has a reference model
     robot_faithful: bool = True      # the control path saw only what a robot measures (not the simulator's truth)
@@ -287,8 +287,8 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
     the nominal controller (`build_controller`), and `controller` replaces it (anything with reset(q) and
     __call__(state, base, command) -> a); `estimator` is an estimator kind (`estimation.estimators.ESTIMATORS`) or
     an `Estimator` (default: the truth where the backend has one, else the kinematic estimator); `commands` has
-    `at(t) -> (vx, vy, yaw rate)` for t in seconds since activation, e.g. a `runtime.commands.CommandSchedule`
-    (default: stand still). `observers` (`runtime.observers.TickObserver`, e.g. `training.collect`'s recorder) see
+    `at(t) -> (vx, vy, yaw rate)` for t in seconds since activation, e.g. a `runtime.control.commands.CommandSchedule`
+    (default: stand still). `observers` (`runtime.loop.observers.TickObserver`, e.g. `training.collect`'s recorder) see
     every tick after the write, outside the timed sections, after the mock's own ground-truth observers (which fill
     `summary.truth`); a non-empty string one returns ends the run after that tick, as the end of `duration` does,
     with that string as the stop cause. A run is robot-faithful (`summary.robot_faithful`: the simulator's truth is
@@ -298,7 +298,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
     SIGINT/SIGTERM (`stop`, installed here if not given) before activation end start-up at once with nothing
     enabled (the summary says so, exit code 0, nothing raised); after, the loop ends through damping. Every model is
     checked on the measured state before the motors are enabled (`check_models`). The summary's `exit_code` and
-    `fault_class` say how the run ended (runtime.exit.ExitCode); the stats are written on every path. Errors are
+    `fault_class` say how the run ended (runtime.loop.exit.ExitCode); the stats are written on every path. Errors are
     re-raised after the summary is written (StopRequested is not an error)."""
     summary = RunSummary(backend=backend.name, realtime=realtime, transfer=transfer)
     stop = stop or StopFlag()

@@ -13,9 +13,9 @@ import pytest
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.reality_gap import load_gap
 from bruce_hw.types import GroundTruth
-from runtime.commands import CommandSchedule
-from runtime.falls import FALL_HEIGHT_FRACTION, FALL_TILT_RAD, has_fallen
-from runtime.observers import (
+from runtime.control.commands import CommandSchedule
+from runtime.loop.falls import FALL_HEIGHT_FRACTION, FALL_TILT_RAD, has_fallen
+from runtime.loop.observers import (
     TRACKING_SKIP_S,
     TRUTH_PHASE,
     FallStop,
@@ -24,7 +24,7 @@ from runtime.observers import (
     TickView,
     ground_truth_observers,
 )
-from runtime.run import run_session
+from runtime.loop.run import run_session
 
 PUSH_READ = 3200  # the shoved walk: pushed over at 3.2 s, after more than a second of scored tracking
 

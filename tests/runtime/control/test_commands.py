@@ -12,11 +12,11 @@ from support.paths import REPO
 from bruce_hw.config import ConfigError
 from bruce_hw.mock import MujocoBackend
 from bruce_hw.types import GroundTruth
-from runtime.commands import COMMAND_LIMITS, CommandSchedule
-from runtime.controllers import build_controller
-from runtime.observers import TRACKING_SKIP_S, GroundTruthLog, heading_velocity
-from runtime.run import run_session
-from runtime.standing import StandingController
+from runtime.control.commands import COMMAND_LIMITS, CommandSchedule
+from runtime.control.controllers import build_controller
+from runtime.control.standing import StandingController
+from runtime.loop.observers import TRACKING_SKIP_S, GroundTruthLog, heading_velocity
+from runtime.loop.run import run_session
 
 SCENARIOS = REPO / "configs" / "scenarios"
 

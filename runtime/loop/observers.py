@@ -1,10 +1,10 @@
 """Observers of the tick: everything that watches a run without acting on the robot.
 
-The loop (`runtime.run`) hands every observer the same `TickView` once per tick, after the write and outside every
+The loop (`runtime.loop.run`) hands every observer the same `TickView` once per tick, after the write and outside every
 timed section: what was read, the command and targets in force, tau* and the torque written. An observer may end
 the run (a non-empty string from `on_tick` is the stop cause, as the end of `--duration` is); it never changes
 what the robot is sent. Evaluation lives here, not in the loop: on the mock, every run gets the ground-truth
-observers (`ground_truth_observers`: base height and path, falls by `runtime.falls`, velocity tracking), which fill
+observers (`ground_truth_observers`: base height and path, falls by `runtime.loop.falls`, velocity tracking), which fill
 the summary's `GroundTruthLog`; callers add their own (bruce-collect's recorder, bruce-eval transfer's truth
 recorder and twin metric, DAgger's pushes).
 
@@ -23,8 +23,8 @@ from bruce_hw.backend import Backend
 from bruce_hw.config import RobotConfig
 from bruce_hw.quaternion import euler_of, world_z_in_body
 from bruce_hw.types import GroundTruth, RobotState
-from runtime.commands import COMMAND_AXES
-from runtime.falls import has_fallen
+from runtime.control.commands import COMMAND_AXES
+from runtime.loop.falls import has_fallen
 
 TRUTH_PHASE = 5              # the truth observers sample this tick of each policy period, not with the policy
 TRACKING_SKIP_S = 2.0        # velocity tracking is scored after this start-up transient (soft start, first steps)
@@ -236,7 +236,7 @@ class BasePathObserver(_TruthSampler):
 
 
 class FallObserver(_TruthSampler):
-    """`fell` (runtime.falls) at any sample or at the end of the loop."""
+    """`fell` (runtime.loop.falls) at any sample or at the end of the loop."""
 
     def sample(self, view: TickView) -> None:
         if has_fallen(view.truth, self.log.nominal_base_height):
@@ -248,7 +248,7 @@ class FallObserver(_TruthSampler):
 
 
 class FallStop(TickObserver):
-    """Ends the run at the first tick the robot has fallen (runtime.falls, checked every tick; mock only)."""
+    """Ends the run at the first tick the robot has fallen (runtime.loop.falls, checked every tick; mock only)."""
 
     def __init__(self):
         self.fell_at: int | None = None  # the tick that ended the run

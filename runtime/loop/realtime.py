@@ -24,7 +24,7 @@ class RealtimeGrant:
     cpu: int | None = None
     memory_locked: bool = False
     refused: list[str] = field(default_factory=list)
-    helpers: str | None = None  # the process's other threads, once put above the loop (runtime.run)
+    helpers: str | None = None  # the process's other threads, once put above the loop (runtime.loop.run)
     _restore: list = field(default_factory=list, repr=False)
 
     def text(self) -> str:

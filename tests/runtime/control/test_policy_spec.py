@@ -1,7 +1,7 @@
-"""Policy specs (runtime/policy_spec.py): the Table I spec is today's observation and actions bit for bit; a policy
-with another layout (legged_gym's: other joint order, 50 Hz, scaled terms, last raw action), made here, runs through
-bruce-run's path on the mock and sends exactly what onnxruntime gives on the observation recomputed here; sizes,
-bad specs and the sidecar."""
+"""Policy specs (runtime/control/policy_spec.py): the Table I spec is today's observation and actions bit for bit; a
+policy with another layout (legged_gym's: other joint order, 50 Hz, scaled terms, last raw action), made here, runs
+through bruce-run's path on the mock and sends exactly what onnxruntime gives on the observation recomputed here;
+sizes, bad specs and the sidecar."""
 
 from __future__ import annotations
 
@@ -16,14 +16,14 @@ import yaml
 from bruce_hw.config import ConfigError, load_config
 from bruce_hw.mock import MujocoBackend
 from runtime.cli import main as bruce_run
-from runtime.commands import CommandSchedule
-from runtime.controllers import build_controller
+from runtime.control.commands import CommandSchedule
+from runtime.control.controllers import build_controller
+from runtime.control.inference import ModelError, OnnxPolicy
+from runtime.control.policy_spec import load_policy_spec, parse_policy_spec, spec_file
 from runtime.estimation import BaseEstimate, GroundTruthEstimator
-from runtime.inference import ModelError, OnnxPolicy
+from runtime.loop.observers import TickObserver
+from runtime.loop.run import run_session
 from runtime.observation.builder import ObservationBuilder
-from runtime.observers import TickObserver
-from runtime.policy_spec import load_policy_spec, parse_policy_spec, spec_file
-from runtime.run import run_session
 
 LEGGED_GYM_OBS = 3 + 3 + 3 + 3 + 3 * 10  # lin vel, ang vel, gravity, command, q - default, qd, last actions
 

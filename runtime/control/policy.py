@@ -2,9 +2,9 @@
 policy's rate.
 
 What a policy observes, at which rate and in which joint order, and how its output becomes targets, is its spec
-(`runtime.policy_spec`); ours is the paper's Table I (the shipped spec `table1.yaml`). The observation is built by
-`runtime.observation.builder.ObservationBuilder`, the same builder training runs on a batch of simulated robots, so
-training and the runtime cannot disagree on it.
+(`runtime.control.policy_spec`); ours is the paper's Table I (the shipped spec `table1.yaml`). The observation is
+built by `runtime.observation.builder.ObservationBuilder`, the same builder training runs on a batch of simulated
+robots, so training and the runtime cannot disagree on it.
 """
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ import numpy as np
 
 from bruce_hw.config import RobotConfig
 from bruce_hw.types import RobotState
+from runtime.control.inference import OnnxPolicy
+from runtime.control.policy_spec import TABLE_ONE, PolicySpec, load_policy_spec
 from runtime.estimation import BaseEstimate
-from runtime.inference import OnnxPolicy
 from runtime.observation.builder import ObservationBuilder
-from runtime.policy_spec import TABLE_ONE, PolicySpec, load_policy_spec
 
 
 class PolicyController:

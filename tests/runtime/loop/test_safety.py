@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from support.safety_fixtures import robot, running_stage
 
-from runtime.safety import SafetyStage, SafetyState
+from runtime.loop.safety import SafetyStage, SafetyState
 
 
 def roll_quaternion(deg):

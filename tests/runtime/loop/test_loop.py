@@ -11,9 +11,9 @@ import pytest
 from bruce_hw.backend import LifecycleState
 from bruce_hw.config import load_config
 from bruce_hw.mock import MujocoBackend
-from runtime.commands import CommandSchedule
-from runtime.inference import ModelError
-from runtime.run import run_session
+from runtime.control.commands import CommandSchedule
+from runtime.control.inference import ModelError
+from runtime.loop.run import run_session
 
 LOOP_KEYS = {"ticks", "late_ticks", "late_share", "work_us", "cpu_us", "period_us", "sections_us",
              "worst_overruns_us"}
@@ -121,7 +121,7 @@ def test_a_wrong_model_file_fails_before_the_robot_moves(config, tmp_path):
 
 
 def test_onnx_policy_drives_the_loop_at_the_policy_rate(config, random_policy_onnx, monkeypatch):
-    from runtime.policy import PolicyController
+    from runtime.control.policy import PolicyController
 
     calls = []
     original = PolicyController.__call__

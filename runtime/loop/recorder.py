@@ -32,9 +32,9 @@ import numpy as np
 from bruce_hw.backend import Backend
 from bruce_hw.config import RobotConfig
 from bruce_hw.types import FOOT_CONTACT_NAMES
-from runtime.observers import TickObserver, TickView
+from runtime.loop.observers import TickObserver, TickView
 
-log = logging.getLogger("runtime.recorder")
+log = logging.getLogger("runtime.loop.recorder")
 
 LOG_FORMAT = "bruce-run-log"
 LOG_VERSION = 1
@@ -111,7 +111,7 @@ def column_layout(columns: tuple[Column, ...]) -> list[dict]:
     return out
 
 
-REPOSITORY = Path(__file__).resolve().parents[1]
+REPOSITORY = Path(__file__).resolve().parents[2]
 
 
 def portable_path(path: str | Path) -> str:
@@ -170,7 +170,7 @@ def describe_run(config: RobotConfig, *, backend: str, controller: str, policy: 
 
 
 class RunRecorder(TickObserver):
-    """The log of a run at `path` (a new or empty directory), as a tick observer of `runtime.run.run_session`.
+    """The log of a run at `path` (a new or empty directory), as a tick observer of `runtime.loop.run.run_session`.
     `run` is `describe_run`'s record of the run; `max_s` bounds the recording (the run goes on after it)."""
 
     def __init__(self, path: str | Path, config: RobotConfig, run: dict, max_s: float = DEFAULT_MAX_S,

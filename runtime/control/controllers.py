@@ -6,10 +6,10 @@ from __future__ import annotations
 from pathlib import Path
 
 from bruce_hw.config import RobotConfig
-from runtime.inference import OnnxPolicy
-from runtime.policy import PolicyController
-from runtime.policy_spec import policy_spec_for
-from runtime.standing import StandingController
+from runtime.control.inference import OnnxPolicy
+from runtime.control.policy import PolicyController
+from runtime.control.policy_spec import policy_spec_for
+from runtime.control.standing import StandingController
 
 CONTROLLERS = ("policy", "teacher", "standing")
 
@@ -17,7 +17,7 @@ CONTROLLERS = ("policy", "teacher", "standing")
 def build_controller(config: RobotConfig, policy_path: Path | None, kind: str = "policy"):
     """The nominal controller and its name. `policy`: the ONNX policy given (or configured), else the standing
     controller; `teacher`: the model-based walking controller; `standing`: the standing controller. A policy runs
-    with its spec (`runtime.policy_spec.policy_spec_for`), and its ONNX sizes are checked against the spec's."""
+    with its spec (`runtime.control.policy_spec.policy_spec_for`), and its ONNX sizes are checked against the spec's."""
     if kind not in CONTROLLERS:
         raise ValueError(f"unknown controller {kind!r} (expected one of {', '.join(CONTROLLERS)})")
     if policy_path is not None and kind != "policy":

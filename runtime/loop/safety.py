@@ -29,7 +29,7 @@ from bruce_hw.config import RobotConfig
 from bruce_hw.types import RobotState, all_finite
 from runtime.estimation import cos_tilt, tilt_angle
 
-log = logging.getLogger("runtime.safety")
+log = logging.getLogger("runtime.loop.safety")
 
 
 class SafetyState(enum.IntEnum):

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from bruce_hw.config import PdGains
-from runtime.mixing import eq8_torque, eq9_torque
+from runtime.control.mixing import eq8_torque, eq9_torque
 
 
 def test_eq8_by_hand():
