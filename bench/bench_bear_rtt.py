@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-from bruce_hw.emulator_process import EmulatorProcess
+from bruce_hw.emulation.process import EmulatorProcess
 from drivers.bear import BearBus
 from drivers.bear_registers import Mode
 

@@ -50,7 +50,7 @@ from stall_witness import Witness
 
 from bruce_hw.backend import BackendError
 from bruce_hw.config import load_config
-from bruce_hw.emulator_process import EmulatorProcess, FaultAt, reply_time
+from bruce_hw.emulation.process import EmulatorProcess, FaultAt, reply_time
 from bruce_hw.hw import make_hw_backend
 from runtime.loop.run import run_session
 

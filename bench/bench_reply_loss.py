@@ -26,7 +26,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from bruce_hw.emulator_process import EmulatorProcess
+from bruce_hw.emulation.process import EmulatorProcess
 
 CASES = (("no loss", 0.0, 0.0), ("1 % dropped", 0.01, 0.0), ("1 % corrupted", 0.0, 0.01),
          ("5 % dropped", 0.05, 0.0), ("5 % corrupted", 0.0, 0.05))

@@ -1,4 +1,4 @@
-"""`bruce-emulate` (`main`): BRUCE's devices emulated on this machine (`bruce_hw.emulated_plant.EmulatedRobot`),
+"""`bruce-emulate` (`main`): BRUCE's devices emulated on this machine (`bruce_hw.emulation.robot.EmulatedRobot`),
 driven by the MuJoCo physics, so that `bruce-run --backend hw` runs end to end with no robot. It prints the device
 paths and the `bruce-run` line that uses them, takes fault commands on stdin and prints every emulator event as an
 `event t=<monotonic> <text>` line. `EmulatorProcess` runs it in a subprocess for tests and benchmarks. What it does
@@ -162,7 +162,7 @@ def bruce_run_args(args: argparse.Namespace, robot) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from bruce_hw.emulated_plant import EmulatedRobot
+    from bruce_hw.emulation.robot import EmulatedRobot
 
     args = build_parser().parse_args(argv)
     try:

@@ -158,7 +158,7 @@ def no_memory_lock(monkeypatch):
 @pytest.fixture(scope="module")
 def emulator():
     """`bruce-emulate --lockstep` in a child process: the physics steps once per host bulk cycle."""
-    from bruce_hw.emulator_process import EmulatorProcess
+    from bruce_hw.emulation.process import EmulatorProcess
 
     emu = EmulatorProcess("--realtime", "--lockstep")
     yield emu
@@ -223,7 +223,7 @@ def pytest_runtest_makereport(item, call):
 @pytest.fixture(scope="module")
 def bringup_target(request):
     """(config path, overrides, the emulator or None) of the bring-up: the robot's ports, or bruce-emulate's."""
-    from bruce_hw.emulator_process import EmulatorProcess
+    from bruce_hw.emulation.process import EmulatorProcess
 
     path = request.config.getoption("--bruce-config")
     overrides = list(request.config.getoption("--bruce-set"))
@@ -283,7 +283,7 @@ class EmulatedOperator(PersonOperator):
         return f"(emulated: `{self.COMMANDS[what][0]}` 1 s in)"
 
     def at(self, t: float, what: str):
-        from bruce_hw.emulator_process import FaultAt
+        from bruce_hw.emulation.process import FaultAt
 
         return FaultAt(self.emulator, self.COMMANDS[what][0], t)
 

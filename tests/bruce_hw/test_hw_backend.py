@@ -23,7 +23,7 @@ from bruce_hw import BackendError, LifecycleState
 from bruce_hw.attitude import MahonyAttitude
 from bruce_hw.bear_legs import actuator_position_limits
 from bruce_hw.config import load_config
-from bruce_hw.emulator_process import FaultAt, reply_time
+from bruce_hw.emulation.process import FaultAt, reply_time
 from bruce_hw.hw import HwBackend, make_hw_backend, missing_for_hw
 from runtime.loop.exit import ExitCode
 from runtime.loop.observers import TickObserver
@@ -178,7 +178,7 @@ def test_hw_check_reports_ok_then_names_a_silent_id(emulator, hw_config, capsys)
 def test_can_legs_compose_with_the_virtual_bus():
     """CAN legs (configs/robots/bruce_can.yaml) on python-can's in-process virtual bus: torque goes out through
     the coupling as the MIT torque field, damping is a damping-only command kept after shutdown."""
-    from bruce_hw.emulated_plant import EmulatedRobot
+    from bruce_hw.emulation.robot import EmulatedRobot
 
     base = load_config("configs/robots/bruce_can.yaml")
     with EmulatedRobot(base) as robot:

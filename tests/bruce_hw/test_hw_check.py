@@ -98,7 +98,7 @@ STREAM_LINE = re.compile(r"stream over (\d+) ticks of 1 ms: (\d+) packets/s .*ag
 
 @pytest.fixture(scope="module")
 def emulated_robot():
-    from bruce_hw.emulator_process import EmulatorProcess
+    from bruce_hw.emulation.process import EmulatorProcess
 
     with EmulatorProcess() as emu:
         yield emu

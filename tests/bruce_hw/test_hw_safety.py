@@ -19,7 +19,7 @@ import pytest
 from support.emulated_robot import BEAR_IDS, DXL_IDS, WALL_CLOCK_SLACK
 
 from bruce_hw import BackendError
-from bruce_hw.emulator_process import FaultAt, reply_time
+from bruce_hw.emulation.process import FaultAt, reply_time
 from bruce_hw.hw import HwBackend, make_hw_backend
 from runtime.loop.exit import ExitCode, StopFlag
 from runtime.loop.run import run_session
@@ -180,7 +180,7 @@ def test_devices_that_vanish_mid_run_end_in_one_line_with_the_bus_exit_code(tmp_
     """The emulator killed mid-run, its pseudo-terminals gone (a USB adapter pulled): bruce-run ends with exit code
     4 (bus) and one line naming it, its stats written, and no traceback from the shutdown's damping of ports that
     no longer exist (termios.error from tcflush was one)."""
-    from bruce_hw.emulator_process import EmulatorProcess
+    from bruce_hw.emulation.process import EmulatorProcess
 
     emulator = EmulatorProcess("--realtime", "--lockstep")
     stats = tmp_path / "stats.json"
@@ -211,7 +211,7 @@ def test_devices_that_vanish_during_start_up_end_in_one_line_with_the_bus_exit_c
     """The emulator killed while bruce-run configures the devices (the arms' watchdog written, or the legs' limits
     and gains being written): exit code 4 (bus), one line naming every bus and the devices it failed for, the stats
     written, nothing moved."""
-    from bruce_hw.emulator_process import EmulatorProcess
+    from bruce_hw.emulation.process import EmulatorProcess
 
     emulator = EmulatorProcess("--realtime", "--lockstep")
     stats = tmp_path / "stats.json"

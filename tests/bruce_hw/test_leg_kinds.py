@@ -196,7 +196,7 @@ def test_the_newest_kind_that_uses_a_config_is_its_kind(ideal_kind):
 
 @pytest.mark.slow
 def test_a_registered_kind_is_built_driven_and_diagnosed(ideal_kind):
-    from bruce_hw.emulated_plant import EmulatedRobot
+    from bruce_hw.emulation.robot import EmulatedRobot
     from bruce_hw.hw import make_hw_backend, missing_for_hw
     from bruce_hw.hw_check import check
 

@@ -9,7 +9,7 @@ import pytest
 import serial
 
 from bruce_hw.config import load_config
-from bruce_hw.emulator_process import EmulatorProcess, parse_event, reply_time
+from bruce_hw.emulation.process import EmulatorProcess, parse_event, reply_time
 from drivers.bear import BearBus, encode_ping
 from drivers.dynamixel_codec import INST_PING, encode_packet
 from drivers.errors import BusTimeout
@@ -19,7 +19,7 @@ from runtime.emulate_cli import execute, status
 
 @pytest.fixture(scope="module")
 def robot():
-    from bruce_hw.emulated_plant import EmulatedRobot
+    from bruce_hw.emulation.robot import EmulatedRobot
 
     with EmulatedRobot(load_config()) as emulated:
         yield emulated

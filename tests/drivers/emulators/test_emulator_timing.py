@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import serial
 
-from bruce_hw.emulator_process import EmulatorProcess
+from bruce_hw.emulation.process import EmulatorProcess
 from drivers.bear import BearBus
 from drivers.dynamixel_codec import INST_PING, encode_packet
 from drivers.emulators.reply_delay import ReplyDelay, check_delay, wait_until
