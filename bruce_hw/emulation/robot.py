@@ -108,9 +108,6 @@ class Plant:
         self.close()
 
     def _run(self) -> None:
-        import os
-        if os.environ.get("BRUCE_PLANT_OTHER"):  # EXPERIMENT
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         next_step = time.monotonic()
         while not self._stop.is_set():
             now = time.monotonic()
