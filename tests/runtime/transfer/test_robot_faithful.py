@@ -171,6 +171,7 @@ def test_estimator_snapshot_restores_the_same_filter(config):
 
 
 # The settings with which the rehearsal recommends shadow_twin (docs/results/transfer.md, "The recommended settings")
+OVERLOADED_LATE_SHARE = 0.25  # a paced run with a quarter of its ticks late did not run at the loop rate
 RECOMMENDED = ["estimator.level_from_feet_s=1", "transfer.twin.resync_s=1.5", "transfer.twin.time_constant_s=3"]
 
 
@@ -182,10 +183,20 @@ def test_recommended_twin_scheme_runs_on_hw_against_the_emulator(emulator, hw_co
     argv = ["--backend", "hw", *(w for item in overrides for w in ("--set", item)),
             "--duration", "4", "--cmd", "0.2,0,0", "--transfer", "shadow_twin", "--rerun", "off",
             "--stats", str(stats)]
-    run = subprocess.run([sys.executable, "-c", "from runtime.cli import main; raise SystemExit(main())", *argv],
-                         capture_output=True, text=True, timeout=90)
+    # The run is paced to the wall clock; on two cores shared with the emulator's physics and the twin's, a slow
+    # moment of the machine leaves most ticks late (the loop at 600 Hz, ticks skipped) and the robot can end at a
+    # joint limit: that says nothing about the scheme, so such a run is repeated once, then reported as a skip.
+    for attempt in range(2):
+        if attempt:
+            emulator.send("place")  # back on its feet for the second run
+        run = subprocess.run([sys.executable, "-c", "from runtime.cli import main; raise SystemExit(main())", *argv],
+                             capture_output=True, text=True, timeout=90)
+        summary = json.loads(stats.read_text())
+        if run.returncode == int(ExitCode.OK) or summary["late_share"] < OVERLOADED_LATE_SHARE:
+            break
+    else:
+        pytest.skip(f"the machine could not pace the loop: {100 * summary['late_share']:.0f} % of the ticks late twice")
     assert run.returncode == int(ExitCode.OK), run.stdout + run.stderr
-    summary = json.loads(stats.read_text())
     assert summary["error"] is None and summary["stop_cause"] == "duration reached", summary
     assert summary["robot_faithful"] and summary["ticks"] == 4000
     assert summary["twin"]["resyncs"] >= 2 and summary["twin"]["stepped"] >= 3000, summary["twin"]
