@@ -37,6 +37,7 @@ ARM_EVERY_STEPS = 20          # the arm bus runs at 50 Hz
 STAND_LIFT_M = 0.05
 STAND_KP, STAND_KD = 5000.0, 200.0          # N/m, N s/m
 STAND_KP_ROT, STAND_KD_ROT = 500.0, 20.0    # N m/rad, N m s/rad
+PHYSICS_THREAD_NAME = "bruce-physics"  # the stepping thread's name in `ps -L` / `top -H` (bruce-emulate runs it apart)
 MAX_CATCH_UP_STEPS = 10       # after a longer stall the lost time is dropped (`skipped_steps`), never run in a burst
 
 
@@ -87,6 +88,11 @@ class Plant:
         self._thread.start()
         return self
 
+    @property
+    def thread(self) -> threading.Thread | None:
+        """The thread that steps the physics (or, in lockstep, checks the devices' watchdogs); None before start()."""
+        return self._thread
+
     def _device_clocks(self) -> None:
         """Lockstep: the physics waits for the host, the devices' own timers do not. Every millisecond the leg
         actuators' and the Dynamixels' watchdogs are checked (a silent host still ends in damping / stopped servos)."""
@@ -108,6 +114,7 @@ class Plant:
         self.close()
 
     def _run(self) -> None:
+        name_os_thread(PHYSICS_THREAD_NAME)
         next_step = time.monotonic()
         while not self._stop.is_set():
             now = time.monotonic()
@@ -354,3 +361,14 @@ class EmulatedRobot:
 
 def _ids(ids) -> str:
     return ", ".join(str(i) for i in ids)
+
+
+def name_os_thread(name: str) -> None:
+    """The calling thread's name as the OS shows it (Linux: 15 characters; elsewhere nothing): Python before 3.14
+    names its threads for itself only."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).prctl(15, name.encode()[:15], 0, 0, 0)  # PR_SET_NAME
+    except (OSError, AttributeError):
+        pass

@@ -1,0 +1,42 @@
+"""How `bruce-emulate --realtime` shares its CPUs: the devices at real-time priority, the physics at normal priority
+beside the kernel's tty worker (ftrace of the hw runs that ended on a whole-bus silence: with the physics real-time,
+a tty worker preempted halfway through a BEAR pty's buffer waited 5-10 ms behind it; docs/results/timing.md)."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from bruce_hw.emulation.process import EmulatorProcess
+from bruce_hw.emulation.robot import PHYSICS_THREAD_NAME
+from runtime.emulate_cli import EMULATOR_PRIORITY, OPERATOR_PRIORITY
+
+
+def _threads(pid: int) -> list[tuple[str, int | None]]:
+    """Per thread of `pid`: its OS name and SCHED_FIFO priority (None for any other policy)."""
+    found = []
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/comm") as f:
+                name = f.read().strip()
+            fifo = os.sched_getscheduler(int(tid)) == os.SCHED_FIFO
+            found.append((name, os.sched_getparam(int(tid)).sched_priority if fifo else None))
+        except OSError:  # the thread ended meanwhile
+            continue
+    return found
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setscheduler"), reason="Linux scheduling")
+def test_realtime_emulator_runs_its_devices_real_time_and_its_physics_at_normal_priority():
+    with EmulatorProcess("--realtime") as emulator:
+        if any("SCHED_FIFO refused" in line for line in emulator.output):
+            pytest.skip("this machine refuses SCHED_FIFO: --realtime runs at normal priority")
+        threads = _threads(emulator.proc.pid)
+    physics = [priority for name, priority in threads if name == PHYSICS_THREAD_NAME]
+    others = [priority for name, priority in threads if name != PHYSICS_THREAD_NAME]
+    assert physics == [None], threads  # one physics thread, at normal priority
+    # The BEAR, Dynamixel and sense-board ptys, the board's firmware and its sender at the devices' priority; the
+    # operator's threads (main, events, stdin) one step below.
+    assert others.count(EMULATOR_PRIORITY) >= 5, threads
+    assert others.count(OPERATOR_PRIORITY) >= 1, threads
