@@ -87,7 +87,8 @@ EMULATOR_PRIORITY = 40  # SCHED_FIFO priority with --realtime: below bruce-run's
 # kernel no time on that CPU for its tty worker (the `kworker` that moves every pty byte, at normal priority): a
 # worker preempted halfway through a BEAR pty's buffer by the device thread it had just woken then waited 5-10 ms
 # behind the physics' steps, and no other worker may take that buffer meanwhile, so the host's next request sat in
-# the pty and every BEAR went silent (ftrace of the runs that ended, docs/results/timing.md). Real devices answer
+# the pty and every BEAR went silent (ftrace of the runs that ended, docs/results/timing.md). At normal priority the
+# worker shares the CPU with the physics (it still waits up to one time slice of it, ~2 ms). Real devices answer
 # whatever the world is doing and cost the robot computer nothing; the physics only runs a little late.
 OPERATOR_PRIORITY = EMULATOR_PRIORITY - 1  # the main thread, the event printer, the stdin reader
 EVENT_POLL_S = 0.002  # how often the emulators' event logs are drained and printed
