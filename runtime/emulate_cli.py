@@ -67,8 +67,8 @@ by --loss-seed when given.
 
 --realtime runs the emulators at SCHED_FIFO 40 on every CPU but the last (bruce-run's loop takes that one), as
 devices with their own clocks; on a loaded machine it keeps their replies within the BEAR's 2 ms timeout. The
-physics runs at normal priority beside them, so a device answers while the world is being stepped, as real
-devices do, and the kernel's tty worker shares the CPU with the physics.
+physics runs at normal priority beside them (bruce_hw/emulation/robot.py, `_leave_real_time`), so a device answers
+while the world is being stepped, as real devices do, and the kernel's tty worker shares the CPU with the physics.
 
 CAN configs: python-can's `virtual` interface reaches only this process, so run the stack inside it:
 `bruce-emulate --config configs/robots/bruce_can.yaml --run [bruce-run options]` (--run works for every config).
@@ -82,14 +82,6 @@ about a millisecond: that needs --set buses.can.timeout_s=0.005 and does not kee
 # at 0.1 ms 0.5-0.6 ms (bench/bench_bear_rtt.py).
 SWITCH_INTERVAL_S = 0.0001
 EMULATOR_PRIORITY = 40  # SCHED_FIFO priority with --realtime: below bruce-run's control loop (50)
-# The physics is no device: with --realtime it runs at normal priority (SCHED_OTHER) on the emulators' CPUs, below
-# every device thread (pty servers, sense-board firmware and sender, CAN motors). At real-time priority it left the
-# kernel no time on that CPU for its tty worker (the `kworker` that moves every pty byte, at normal priority): a
-# worker preempted halfway through a BEAR pty's buffer by the device thread it had just woken then waited 5-10 ms
-# behind the physics' steps, and no other worker may take that buffer meanwhile, so the host's next request sat in
-# the pty and every BEAR went silent (ftrace of the runs that ended, docs/results/timing.md). At normal priority the
-# worker shares the CPU with the physics (it still waits up to one time slice of it, ~2 ms). Real devices answer
-# whatever the world is doing and cost the robot computer nothing; the physics only runs a little late.
 OPERATOR_PRIORITY = EMULATOR_PRIORITY - 1  # the main thread, the event printer, the stdin reader
 EVENT_POLL_S = 0.002  # how often the emulators' event logs are drained and printed
 _print_lock = threading.Lock()  # event lines and command replies come from two threads: whole lines only
@@ -208,8 +200,6 @@ def main(argv: list[str] | None = None) -> int:
             # process while it held our GIL, stalled every emulated device for tens of milliseconds. With --run,
             # bruce-run is this process: normal scheduling on every CPU.
             restore(below=args.run is None)
-            if args.run is None and robot.plant is not None and robot.plant.thread is not None:
-                _set_normal(robot.plant.thread)
     if args.bear_drop or args.bear_corrupt:
         if robot.legs.bus != "bear":
             robot.close()
@@ -315,15 +305,6 @@ def _realtime():
         os.sched_setaffinity(0, allowed)
 
     return restore, text
-
-
-def _set_normal(thread: threading.Thread) -> None:
-    """Normal scheduling (SCHED_OTHER) for another thread of this process (it keeps its CPUs); refused: it keeps its
-    own."""
-    try:
-        os.sched_setscheduler(thread.native_id, os.SCHED_OTHER, os.sched_param(0))
-    except (AttributeError, OSError, TypeError):
-        pass
 
 
 def _serve(robot, duration: float | None) -> None:

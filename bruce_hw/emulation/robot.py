@@ -13,6 +13,7 @@ choices the emulators leave to the adapter are noted at the code that makes them
 from __future__ import annotations
 
 import math
+import os
 import threading
 import time
 from dataclasses import dataclass, field
@@ -88,11 +89,6 @@ class Plant:
         self._thread.start()
         return self
 
-    @property
-    def thread(self) -> threading.Thread | None:
-        """The thread that steps the physics (or, in lockstep, checks the devices' watchdogs); None before start()."""
-        return self._thread
-
     def _device_clocks(self) -> None:
         """Lockstep: the physics waits for the host, the devices' own timers do not. Every millisecond the leg
         actuators' and the Dynamixels' watchdogs are checked (a silent host still ends in damping / stopped servos)."""
@@ -115,6 +111,7 @@ class Plant:
 
     def _run(self) -> None:
         name_os_thread(PHYSICS_THREAD_NAME)
+        _leave_real_time()
         next_step = time.monotonic()
         while not self._stop.is_set():
             now = time.monotonic()
@@ -371,4 +368,20 @@ def name_os_thread(name: str) -> None:
 
         ctypes.CDLL(None).prctl(15, name.encode()[:15], 0, 0, 0)  # PR_SET_NAME
     except (OSError, AttributeError):
+        pass
+
+
+def _leave_real_time() -> None:
+    """The physics is no device: it runs at normal priority (SCHED_OTHER) whatever the thread that started it had
+    (`bruce-emulate --realtime` starts the emulators SCHED_FIFO 40), below every device thread (pty servers,
+    sense-board firmware and sender, CAN motors). At real-time priority it left the kernel no time on its CPU for the
+    tty worker (the `kworker` that moves every pty byte, at normal priority): a worker preempted halfway through a
+    BEAR pty's buffer by the device thread it had just woken then waited 5-10 ms behind the physics' steps, and no
+    other worker may take that buffer meanwhile, so the host's next request sat in the pty and every BEAR went silent
+    (ftrace of the runs that ended, docs/results/timing.md). At normal priority the worker shares the CPU with the
+    physics (it still waits up to one time slice of it, ~2 ms). Real devices answer whatever the world is doing; the
+    physics only runs a little late. (Lockstep's device clock, the devices' watchdog timer, keeps their priority.)"""
+    try:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))  # lowering needs no privilege
+    except (AttributeError, OSError):  # not Linux
         pass
