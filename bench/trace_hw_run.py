@@ -73,7 +73,7 @@ def _patch(module):
                 on_bytes(data)
             init(self, name, received)
         module.PtyDevice.send, module.PtyDevice.__init__ = _send, _init
-    elif name == "bruce_hw.emulation.robot":
+    elif name == "bruce_hw.emulation.plant":
         step = module.Plant.step
         def _step(self):
             mark("P s")
@@ -82,7 +82,7 @@ def _patch(module):
         module.Plant.step = _step
 
 class _AfterImport(importlib.abc.MetaPathFinder):
-    names = {"drivers.bear", "bruce_hw.bear_legs", "drivers.emulators.pty_device", "bruce_hw.emulation.robot"}
+    names = {"drivers.bear", "bruce_hw.bear_legs", "drivers.emulators.pty_device", "bruce_hw.emulation.plant"}
     def find_spec(self, name, path, target=None):
         if name not in self.names:
             return None

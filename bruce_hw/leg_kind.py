@@ -31,7 +31,7 @@ class LegKind(Protocol):
 
 
 class LegEmulation(Protocol):
-    """A kind's emulators as the emulated plant drives them (bruce_hw/emulation/robot.py) and bruce-emulate's fault
+    """A kind's emulators as the emulated plant drives them (bruce_hw/emulation/plant.py) and bruce-emulate's fault
     commands reach them (`silence`; `unplug`, `set_reply_delay`, `set_reply_loss`, `set_estop` where the kind has
     them). Actuator order: coupling columns."""
 

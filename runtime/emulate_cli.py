@@ -67,8 +67,8 @@ by --loss-seed when given.
 
 --realtime runs the emulators at SCHED_FIFO 40 on every CPU but the last (bruce-run's loop takes that one), as
 devices with their own clocks; on a loaded machine it keeps their replies within the BEAR's 2 ms timeout. The
-physics runs at normal priority beside them (bruce_hw/emulation/robot.py, `_leave_real_time`), so a device answers
-while the world is being stepped, as real devices do, and the kernel's tty worker shares the CPU with the physics.
+physics steps in a child process at normal priority (without --lockstep), so a device answers while the world is
+being stepped, as real devices do, and the kernel's tty workers preempt the physics, never wait for it.
 
 CAN configs: python-can's `virtual` interface reaches only this process, so run the stack inside it:
 `bruce-emulate --config configs/robots/bruce_can.yaml --run [bruce-run options]` (--run works for every config).
@@ -82,6 +82,11 @@ about a millisecond: that needs --set buses.can.timeout_s=0.005 and does not kee
 # at 0.1 ms 0.5-0.6 ms (bench/bench_bear_rtt.py).
 SWITCH_INTERVAL_S = 0.0001
 EMULATOR_PRIORITY = 40  # SCHED_FIFO priority with --realtime: below bruce-run's control loop (50)
+# The physics is no device: on the wall clock it steps in a process of its own at normal priority
+# (bruce_hw/emulation/physics_process.py), so the devices' threads share neither a CPU turn nor an interpreter lock
+# with it. In this process, at the devices' real-time priority, it kept the kernel's tty worker (the `kworker` that
+# moves every pty byte, at normal priority) off the CPU for 5-10 ms, and the host's requests sat in the pty; at normal
+# priority, preempted by any other process, it held the lock the devices needed (ftrace, docs/results/timing.md).
 OPERATOR_PRIORITY = EMULATOR_PRIORITY - 1  # the main thread, the event printer, the stdin reader
 EVENT_POLL_S = 0.002  # how often the emulators' event logs are drained and printed
 _print_lock = threading.Lock()  # event lines and command replies come from two threads: whole lines only
@@ -187,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
               f"({legs.name}) cannot clock it", file=sys.stderr)
         return 2
     robot = EmulatedRobot(config, sense_command_poll_s=args.sense_poll_s, can_interface=args.can_interface,
-                          lockstep=args.lockstep)
+                          lockstep=args.lockstep, physics_process=args.run is None)
     try:
         robot.start()
     except Exception as exc:

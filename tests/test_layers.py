@@ -106,7 +106,7 @@ def test_no_module_outside_the_mock_reads_its_private_state():
 # Where a whole mock backend is made: the backend table, the emulated robot's plant, and the tools that run whole
 # sessions on it (evaluation, distillation, benches of runs). A user that needs only BRUCE's model, its indices or the
 # standing placement builds `bruce_hw.robot_model.BruceModel`.
-MOCK_MAKERS = {"bruce_hw/mock.py", "bruce_hw/backends.py", "bruce_hw/emulation/robot.py", "training/distill.py",
+MOCK_MAKERS = {"bruce_hw/mock.py", "bruce_hw/backends.py", "bruce_hw/emulation/plant.py", "training/distill.py",
                "bench/bench_walking_controllers.py", "bench/bench_robot_transfer_cost.py"}
 
 
