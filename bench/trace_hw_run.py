@@ -106,9 +106,14 @@ def write(name: str, value: str) -> None:
     (TRACEFS / name).write_text(value)
 
 
-def setup(buffer_kb: int) -> None:
+def setup(buffer_kb: int) -> dict[str, str]:
+    """Trace the EVENTS into a `buffer_kb` buffer per CPU on the monotonic clock; returns the settings it changed, as
+    they were, for `restore`."""
     if not (TRACEFS / "trace_marker").exists():
         subprocess.run(["mount", "-t", "tracefs", "nodev", str(TRACEFS)], check=True)
+    clock = re.search(r"\[(\w+)\]", (TRACEFS / "trace_clock").read_text())
+    before = {"buffer_size_kb": (TRACEFS / "buffer_size_kb").read_text().split()[0],
+              "trace_clock": clock.group(1) if clock else "local"}
     write("tracing_on", "0")
     write("trace", "")
     write("buffer_size_kb", str(buffer_kb))
@@ -116,6 +121,16 @@ def setup(buffer_kb: int) -> None:
     write("set_event", "")
     with open(TRACEFS / "set_event", "w") as f:  # one open: the file takes one event per line
         f.write("\n".join(EVENTS) + "\n")
+    return before
+
+
+def restore(before: dict[str, str]) -> None:
+    """Tracing off, no events, the buffer (its memory back) and clock as they were."""
+    write("tracing_on", "0")
+    write("set_event", "")
+    write("trace", "")
+    for name, value in before.items():
+        write(name, value)
 
 
 def window(trace: Path, before_s: float) -> list[str]:
@@ -162,7 +177,7 @@ def main() -> None:
     if os.geteuid() != 0:
         sys.exit("trace_hw_run: needs root (the kernel's tracefs)")
     args.out.mkdir(parents=True, exist_ok=True)
-    setup(args.buffer_kb)
+    before = setup(args.buffer_kb)
     with tempfile.TemporaryDirectory() as hooks:
         Path(hooks, "sitecustomize.py").write_text(MARKERS)
         os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [hooks, os.environ.get("PYTHONPATH")]))
@@ -192,8 +207,7 @@ def main() -> None:
                     time.sleep(0.5)
             print("no run ended on a silence")
         finally:
-            write("tracing_on", "0")
-            write("set_event", "")
+            restore(before)
 
 
 if __name__ == "__main__":

@@ -4,23 +4,13 @@ the operator's commands still reach it."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from bruce_hw.config import load_config
 from bruce_hw.emulation.physics_process import PhysicsProcess
 from bruce_hw.emulation.robot import EmulatedRobot
 from drivers.bear import BearBus
-
-
-def _wait_for(condition, timeout_s: float = 3.0) -> bool:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if condition():
-            return True
-        time.sleep(0.02)
-    return False
+from support.fake_bus import wait_for
 
 
 def test_the_physics_process_moves_the_robot_the_host_commands():
@@ -34,8 +24,8 @@ def test_the_physics_process_moves_the_robot_the_host_commands():
             standing = bus.bulk_cycle(ids, None).position
             steps = robot.plant.steps
             bus.set_torque_enable(ids, 1)  # torque mode, no current asked: the robot is let go and folds
-            assert _wait_for(lambda: not robot.plant.held)
-            assert _wait_for(lambda: np.max(np.abs(bus.bulk_cycle(ids, None).position - standing)) > 0.05)
+            assert wait_for(lambda: not robot.plant.held)
+            assert wait_for(lambda: np.max(np.abs(bus.bulk_cycle(ids, None).position - standing)) > 0.05)
             assert robot.plant.steps > steps
             # One exchange per physics step, at the step (not on a clock of the bridge's own): every step fetched the
             # devices' commands of its moment, so the counts agree but for the step under way.
@@ -44,10 +34,10 @@ def test_the_physics_process_moves_the_robot_the_host_commands():
             after = robot.plant.bridge_cycles
             assert done > 0 and before - 1 <= done <= after, (before, done, after)
             nominal = robot.plant.nominal_base_height
-            assert _wait_for(lambda: robot.plant.ground_truth().base_pos[2] < nominal - 0.01)  # it sinks
+            assert wait_for(lambda: robot.plant.ground_truth().base_pos[2] < nominal - 0.01)  # it sinks
             bus.set_torque_enable(ids, 0)  # every BEAR off: put back at the standing pose and held
-            assert _wait_for(lambda: robot.plant.held)
-            assert _wait_for(lambda: np.max(np.abs(bus.bulk_cycle(ids, None).position - standing)) < 1e-6)
+            assert wait_for(lambda: robot.plant.held)
+            assert wait_for(lambda: np.max(np.abs(bus.bulk_cycle(ids, None).position - standing)) < 1e-6)
         robot.plant.stand(True)  # the operator's command goes to the physics process and back
         assert robot.plant.ground_truth().base_pos[2] > nominal
     assert robot.plant.status()["steps"] > steps  # the counters outlive the process, for the shutdown's summary
