@@ -1,0 +1,86 @@
+"""The pacer on a fake clock (runtime/loop/pacing.py, docs/timing.md "The loop after an overrun"): an on-time tick
+sleeps to its deadline, a late one runs at once, whole periods missed are skipped and counted, never run in a burst."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+
+from runtime.loop import pacing
+
+PERIOD_NS = 1_000_000
+SPIN_TURN_NS = 1_000
+
+
+class FakeClock:
+    """time.monotonic_ns and time.sleep on a clock that only sleeps and `work` advance; each sleep is recorded."""
+
+    def __init__(self):
+        self.now_ns = 0
+        self.sleeps_ns: list[int] = []
+
+    def monotonic_ns(self) -> int:
+        return self.now_ns
+
+    def sleep(self, seconds: float) -> None:
+        self.sleeps_ns.append(round(seconds * 1e9))
+        self.now_ns += max(round(seconds * 1e9), SPIN_TURN_NS)  # sleep(0), a turn of the spin, takes 1 us here
+
+    def work(self, ns: int) -> None:
+        self.now_ns += ns
+
+
+@pytest.fixture
+def clock(monkeypatch):
+    fake = FakeClock()
+    monkeypatch.setattr(pacing, "time", SimpleNamespace(monotonic_ns=fake.monotonic_ns, sleep=fake.sleep))
+    return fake
+
+
+def _pacer(monkeypatch, fifo: bool) -> pacing.Pacer:
+    monkeypatch.setattr(pacing, "_fifo", lambda: fifo)
+    pacer = pacing.Pacer(PERIOD_NS / 1e9)
+    pacer.start()
+    return pacer
+
+
+def test_a_late_tick_runs_at_once_and_skips_the_periods_it_missed(clock, monkeypatch):
+    pacer = _pacer(monkeypatch, fifo=True)
+    clock.work(3_400_000)  # the tick overran its deadline by 2.4 ms
+    clock.sleeps_ns.clear()
+    behind = pacer.wait()
+    assert clock.sleeps_ns == [] and behind == 2_400_000
+    assert pacer.late_ticks == 1 and pacer.skipped_ticks == 2  # two whole periods missed, not run in a burst
+    assert pacer.deadline_ns == 4_000_000  # this tick stands for the period from 3 ms; the next one is due at 4
+
+
+def test_a_tick_within_late_after_s_is_on_time(clock, monkeypatch):
+    pacer = _pacer(monkeypatch, fifo=True)
+    clock.work(PERIOD_NS + 200_000)  # 200 us past the deadline: not late (late_after_s 250 us)
+    assert pacer.wait() == 200_000 and pacer.late_ticks == 0 and pacer.skipped_ticks == 0
+
+
+def test_on_time_it_sleeps_to_the_deadline(clock, monkeypatch):
+    pacer = _pacer(monkeypatch, fifo=True)
+    clock.work(300_000)
+    clock.sleeps_ns.clear()
+    assert pacer.wait() == 0
+    assert clock.sleeps_ns == [700_000] and pacer.late_ticks == 0
+
+
+def test_at_normal_priority_it_sleeps_then_spins_to_the_deadline(clock, monkeypatch):
+    pacer = _pacer(monkeypatch, fifo=False)
+    clock.work(300_000)
+    clock.sleeps_ns.clear()
+    assert pacer.wait() == 0
+    assert clock.sleeps_ns == [500_000] + [0] * 200  # the last 200 us spun on sleep(0), which yields the GIL
+    assert pacer.late_ticks == 0
+
+
+def test_at_normal_priority_a_late_tick_runs_at_once(clock, monkeypatch):
+    pacer = _pacer(monkeypatch, fifo=False)
+    clock.work(1_600_000)
+    clock.sleeps_ns.clear()
+    assert pacer.wait() == 600_000
+    assert clock.sleeps_ns == [] and pacer.late_ticks == 1 and pacer.skipped_ticks == 0
