@@ -385,11 +385,11 @@ def execute(robot, words: list[str]) -> str:
 
 def status(robot) -> dict:
     cfg = robot.config
-    truth = robot.plant.ground_truth()
-    out = {"plant": {"steps": robot.plant.steps, "late_steps": robot.plant.late_steps,
-                     "skipped_steps": robot.plant.skipped_steps, "held": robot.plant.held,
-                     "base_height": float(truth.base_pos[2]), "nominal_base_height": robot.plant.nominal_base_height,
-                     "arm_q": robot.plant.arm_q.tolist()},
+    plant = robot.plant.status()  # one moment (with the physics in its own process, one answer)
+    out = {"plant": {"steps": plant["steps"], "late_steps": plant["late_steps"],
+                     "skipped_steps": plant["skipped_steps"], "held": plant["held"],
+                     "base_height": float("nan") if plant["truth"] is None else float(plant["truth"].base_pos[2]),
+                     "nominal_base_height": plant["nominal_base_height"], "arm_q": plant["arm_q"].tolist()},
            "dynamixel": {"ids": list(cfg.buses.dynamixel.ids),
                          "torque_enabled": [bool(x) for x in robot.dynamixel.torque_enabled_all()]},
            "sense": {"mode": robot.sense.mode.name.lower(), "packets_sent": robot.sense.packets_sent,
@@ -401,9 +401,9 @@ def status(robot) -> dict:
 
 
 def _counters(robot) -> str:
-    plant = robot.plant
-    text = "" if plant is None else (f"{plant.steps} physics steps ({plant.late_steps} late, {plant.skipped_steps} "
-                                     "skipped)")
+    plant = None if robot.plant is None else robot.plant.status()
+    text = "" if plant is None else (f"{plant['steps']} physics steps ({plant['late_steps']} late, "
+                                     f"{plant['skipped_steps']} skipped)")
     legs = robot.legs.counters() if robot.legs is not None else ""
     return f"{text}; {legs}" if legs else text
 

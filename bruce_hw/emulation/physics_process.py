@@ -25,7 +25,6 @@ import multiprocessing
 import os
 import select
 import threading
-import time
 from multiprocessing import shared_memory
 
 import numpy as np
@@ -190,10 +189,7 @@ def _child(config: RobotConfig, world_name: str, command_name: str, pipe, reques
                 exchange.publish()
                 pipe.send(None)
             elif what == "status":
-                truth = plant.ground_truth()
-                pipe.send({"steps": plant.steps, "late_steps": plant.late_steps, "skipped_steps": plant.skipped_steps,
-                           "held": plant.held, "arm_q": plant.arm_q.copy(), "truth": truth,
-                           "nominal_base_height": plant.nominal_base_height})
+                pipe.send(plant.status())
     except (EOFError, KeyboardInterrupt):
         pass
     finally:

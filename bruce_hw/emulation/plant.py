@@ -173,6 +173,14 @@ class Plant:
     def nominal_base_height(self) -> float:
         return self.sim.nominal_base_height
 
+    def status(self) -> dict:
+        """The counters, whether held, the arms and the ground truth, all of one moment (bruce-emulate's `status`;
+        in a process of its own, one answer over the pipe)."""
+        with self._lock:
+            return {"steps": self.steps, "late_steps": self.late_steps, "skipped_steps": self.skipped_steps,
+                    "held": self.held, "arm_q": self.arm_q.copy(), "truth": self.sim.ground_truth(),
+                    "nominal_base_height": self.sim.nominal_base_height}
+
     # -- one step ----------------------------------------------------------------------------------------------
     def step(self) -> None:
         with self._lock:

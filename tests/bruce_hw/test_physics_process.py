@@ -5,12 +5,12 @@ the operator's commands still reach it."""
 from __future__ import annotations
 
 import numpy as np
+from support.fake_bus import wait_for
 
 from bruce_hw.config import load_config
 from bruce_hw.emulation.physics_process import PhysicsProcess
 from bruce_hw.emulation.robot import EmulatedRobot
 from drivers.bear import BearBus
-from support.fake_bus import wait_for
 
 
 def test_the_physics_process_moves_the_robot_the_host_commands():
