@@ -36,6 +36,7 @@ PHYSICS_NICE = 10    # below every thread at normal priority on the machine: tty
 START_TIMEOUT_S = 60.0
 REPLY_TIMEOUT_S = 5.0
 FETCH, PUBLISH, DONE = b"f", b"p", b"k"  # the child's requests to the bridge, the bridge's answer to a fetch
+READ_TRIES = 1000  # copies of a shared block before a reader gives up on a writer that died mid-write
 FETCH_TIMEOUT_S = 0.1  # a bridge that does not answer (its process gone): the step goes on with the last commands
 
 
@@ -74,10 +75,11 @@ class _Block:
             self.arrays[key][:] = value
         self._seq[0] += 1
 
-    def read(self, tries: int = 3) -> dict[str, np.ndarray] | None:
-        """A consistent copy, or None when every try met a write under way (the caller keeps its last copy: a
-        real-time reader never waits for a writer it may be keeping off the CPU)."""
-        for _ in range(tries):
+    def read(self) -> dict[str, np.ndarray] | None:
+        """A consistent copy, or None when READ_TRIES copies all met a write under way (the writer died mid-write:
+        the caller keeps its last copy). Each side reads only when the other has said its write is done, so a
+        retry is rare."""
+        for _ in range(READ_TRIES):
             before = self._seq[0]
             if before % 2 == 0:
                 copy = {key: array.copy() for key, array in self.arrays.items()}
@@ -102,7 +104,7 @@ class _Exchange:
         self.world, self.command = world, command
         self._request, self._answer = request.fileno(), answer.fileno()
         self._keep = (request, answer)  # the connections own the file descriptors
-        self.commands = command.read(tries=1000)  # the newest fetched
+        self.commands = command.read()  # the newest fetched
 
     def fetch(self) -> dict[str, np.ndarray]:
         try:
@@ -111,7 +113,7 @@ class _Exchange:
                 os.read(self._answer, 64)
         except OSError:  # the devices' process is gone: nothing more to fetch
             return self.commands
-        self.commands = self.command.read(tries=1000) or self.commands
+        self.commands = self.command.read() or self.commands
         return self.commands
 
     def publish(self) -> None:
@@ -160,10 +162,10 @@ class _Servos:
 def _child(config: RobotConfig, world_name: str, command_name: str, pipe, request, answer, nice: int) -> None:
     """The physics process: normal priority at `nice`, `Plant` stepping on its thread, the operator's commands on
     this one."""
-    from bruce_hw.emulation.plant import Plant
+    from bruce_hw.emulation.plant import Plant, leave_real_time
 
+    leave_real_time()  # spawned from a real-time thread, which it inherits
     try:
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))  # spawned from a real-time thread: not real-time
         os.nice(nice)
     except (AttributeError, OSError):
         pass
@@ -200,12 +202,11 @@ def _child(config: RobotConfig, world_name: str, command_name: str, pipe, reques
 
 # -- the devices' side ---------------------------------------------------------------------------------------------
 class PhysicsProcess:
-    """`Plant`'s surface for `EmulatedRobot` and `bruce-emulate` (start, close, place, stand, ground_truth, the step
-    counters), with the physics in a child process and a bridge thread here."""
+    """`Plant`'s surface for `EmulatedRobot` and `bruce-emulate` (start, close, place, stand, status; ground_truth,
+    steps, held for the tests), with the physics in a child process and a bridge thread here."""
 
     def __init__(self, config: RobotConfig, *, legs=None, dynamixel=None, sense=None, nice: int = PHYSICS_NICE):
-        self.config, self.legs, self.dynamixel, self.sense, self.nice = config, legs, dynamixel, sense, nice
-        self.dt = config.dt
+        self.config, self.legs, self.dynamixel, self.sense = config, legs, dynamixel, sense
         world_fields, command_fields = _layout(config)
         self._world, self._command = _Block(world_fields), _Block(command_fields)
         self._pipe, child_pipe = multiprocessing.Pipe()
@@ -230,11 +231,6 @@ class PhysicsProcess:
         self._thread.start()
         return self
 
-    @property
-    def thread(self) -> threading.Thread:
-        """The bridge thread (a device thread: it runs at the devices' priority)."""
-        return self._thread
-
     def _bridge(self) -> None:
         """At the devices' priority, woken by the child: PUBLISH hands the newest measurement to the emulators; FETCH
         runs the legs' torque law on it with the devices' commands of this moment, reads the servos' goals, writes
@@ -242,7 +238,7 @@ class PhysicsProcess:
         also runs the devices' watchdogs between packets, as in one process."""
         legs, servos, sense = self.legs, self.dynamixel, self.sense
         request, answer = self._request_r.fileno(), self._answer_w.fileno()
-        w = self._world.read(tries=1000)
+        w = self._world.read()
         zeros = np.zeros(self.config.n_joints)
         while not self._stop.is_set():
             if not select.select([request], [], [], 0.05)[0]:
@@ -253,7 +249,7 @@ class PhysicsProcess:
                 return
             if not asked:  # the child is gone
                 return
-            w = self._world.read(tries=1000) or w  # the child wrote it before asking: complete unless it died mid-way
+            w = self._world.read() or w  # the child wrote it before asking: complete unless it died mid-way
             if PUBLISH in asked:
                 if legs is not None:
                     legs.publish(w["m"], w["md"], w["tau"])
@@ -312,20 +308,8 @@ class PhysicsProcess:
         return self.status()["steps"]
 
     @property
-    def late_steps(self) -> int:
-        return self.status()["late_steps"]
-
-    @property
-    def skipped_steps(self) -> int:
-        return self.status()["skipped_steps"]
-
-    @property
     def held(self) -> bool:
         return self.status()["held"]
-
-    @property
-    def arm_q(self) -> np.ndarray:
-        return self.status()["arm_q"]
 
     def close(self) -> None:
         self._stop.set()

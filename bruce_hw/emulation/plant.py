@@ -107,7 +107,7 @@ class Plant:
 
     def _run(self) -> None:
         name_os_thread(PHYSICS_THREAD_NAME)
-        _leave_real_time()
+        leave_real_time()
         next_step = time.monotonic()
         while not self._stop.is_set():
             now = time.monotonic()
@@ -247,7 +247,7 @@ def name_os_thread(name: str) -> None:
         pass
 
 
-def _leave_real_time() -> None:
+def leave_real_time() -> None:
     """The physics is no device: it runs at normal priority (SCHED_OTHER) whatever the thread that started it had
     (`bruce-emulate --realtime` starts the emulators SCHED_FIFO 40). At real-time priority it left the kernel no time
     on its CPU for the tty worker (the `kworker` that moves every pty byte, at normal priority): a worker preempted
