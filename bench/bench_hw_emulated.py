@@ -130,8 +130,10 @@ def report(name: str, stats: dict, emulator: EmulatorProcess, no_delay: bool) ->
           f"bulk cycles = {bulk_rate:.0f}/s{goal}, cycle p50/p99/max {us(cycle.get('p50'))}/{us(cycle.get('p99'))}/"
           f"{us(cycle.get('max'))} µs; replies lost {legs.get('replies_lost_total', '?')}")
     steal = "-" if stats["steal_s"] is None else f"{1e3 * stats['steal_s']:.0f} ms"
-    print(f"     host: {legs.get('host_stalls', '?')} bus reads it was late for (not counted as lost); hypervisor "
-          f"steal during the run {steal}")
+    held = legs.get("port_held") or {}
+    print(f"     host: {legs.get('host_stalls', '?')} bus sends or reads it held (not counted against the BEARs; "
+          f"the port held {held.get('count', '?')} times, worst {held.get('worst_ms', float('nan')):.1f} ms); "
+          f"hypervisor steal during the run {steal}")
     stalls = (stats.get("link") or {}).get("host_stalls") or {}
     print(f"     host stalls the run counted (its own witness, > 2 ms): {stalls.get('count', '?')}, worst "
           f"{stalls.get('worst_ms', float('nan')):.1f} ms, {stalls.get('total_ms', float('nan')):.0f} ms in all; late "

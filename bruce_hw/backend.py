@@ -136,6 +136,12 @@ class Backend(ABC):
         (`bruce_hw.host_witness`). 0 where the backend's clock is the simulation's own (the mock, echo)."""
         return 0.0
 
+    def joint_stalled_between(self, t0: float, t1: float) -> float:
+        """Seconds of [t0, t1] in which the host held the joint readings back: its stalls, and on hw the leg bus's
+        port calls the host held (a request not sent is not a silent actuator). The joint data's age is judged on
+        the rest."""
+        return self.stalled_between(t0, t1)
+
     # A robot-faithful run seals the truth while anything but its observers runs (`runtime.loop.run`): the control path
     # must work on what a robot measures, and a read of the truth then raises instead of going unnoticed.
     truth_sealed = False

@@ -1,5 +1,6 @@
-"""The legs on ten Koala BEARs over RS-485 (`buses.bear`): start-up with read-back, the bulk cycle, lost-reply
-accounting and the monitor reads. Driven by the hw backend through `bruce_hw.leg_bus.LegBus`."""
+"""The legs on ten Koala BEARs over RS-485 (`buses.bear`): start-up with read-back, the bulk cycle (with the
+temperatures and voltages now and then), lost-reply accounting. Driven by the hw backend through
+`bruce_hw.leg_bus.LegBus`."""
 
 from __future__ import annotations
 
@@ -12,17 +13,17 @@ import numpy as np
 from bruce_hw.backend import BackendError
 from bruce_hw.bus_startup import StartupError, ids_text, ping_all
 from bruce_hw.config import ASSUMED_BEAR_WATCHDOG_UNIT_S, RobotConfig
+from bruce_hw.host_witness import StallLog
 from bruce_hw.leg_bus import LegReading, silence
 
 log = logging.getLogger("bruce_hw.hw")
 
 POSITION_LIMIT_MARGIN = 0.1   # rad beyond the actuator range the joint box reaches, for the BEARs' own limit
-MONITOR_EVERY_TICKS = 100     # one BEAR's temperatures and voltage per this many ticks
+MONITOR_EVERY_TICKS = 100     # every BEAR's temperatures and voltage, read in the bulk cycle, once per this many
 TEMPERATURE_WARN_C = 75.0     # BRUCE-OP warns above this winding temperature ...
 VOLTAGE_WARN_V = 14.5         # ... and below this input voltage
 MONITOR_REGISTERS = ("winding_temperature", "powerstage_temperature", "ic_temperature", "input_voltage")
 DEFAULT_REPLY_TIMEOUT_S = 0.002  # BRUCE-OP's bulk_timeout, when buses.bear.reply_timeout_s is not set
-BUS_STOP_TIMEOUT_S = 0.05   # the longest a bus cycle can take (reply timeout, monitor read) with a margin
 REQUEST_TRIES = 4             # BEAR requests outside the tick's bulk cycle (see BearLegs.open)
 SILENT_TICKS = 3              # a motor over the loss bound whose sample is older than this many ticks is silent
 
@@ -74,7 +75,7 @@ class BearLegs:
         self.ping_rounds, self.ping_retry_s, self.clear_attempts = ping_rounds, ping_retry_s, clear_attempts
         self.reply_timeout_s = reply_timeout_s
         self.bus = None
-        self.temperature = np.full(len(self.ids), np.nan)  # hottest sensor, per actuator (the monitor reads)
+        self.temperature = np.full(len(self.ids), np.nan)  # hottest sensor, per actuator (read in the bulk cycle)
         self.monitor_count = 0
         self.voltage = np.full(len(self.ids), np.nan)
         self.homing_offset = np.full(len(self.ids), np.nan)
@@ -82,10 +83,14 @@ class BearLegs:
         self.first_cycle = self.last_cycle = math.nan
         self.low_latency = "not opened"
         self._monitor_tick = 0
-        self._monitor_next = 0
         safety = config.safety
         self.max_age_s = safety.max_sensor_age_s
+        self.host_stall_max_s = safety.host_stall_max_s
         self.dt = config.dt
+        # The time the host held this port's own I/O (BearBus.on_host_stall): the kernel's tty work for the port not
+        # run, so a request not sent or a reply not handed over. Not the BEARs' silence; the hw backend leaves it out
+        # of the joint data's age, up to safety.host_stall_max_s (`silence`).
+        self.port_stalls = StallLog(open_since=self._held_since)
         self.loss = ReplyLoss(len(self.ids), round(safety.reply_loss_window_s * config.loop_hz), safety.reply_loss_max)
         n = len(self.ids)
         self._position, self._velocity, self._iq = np.zeros(n), np.zeros(n), np.zeros(n)
@@ -104,13 +109,14 @@ class BearLegs:
         self._torque_mode = Mode.TORQUE
         self._fault_bits = int(FAULT_BITS & ~BearError.WATCHDOG_ESTOP)  # bit 3 (E-stop, damping): handled apart
         try:
-            # Requests outside the tick (start-up, enabling, the monitor) ask up to REQUEST_TRIES times: at 1 %
+            # Requests outside the tick (start-up, enabling) ask up to REQUEST_TRIES times: at 1 %
             # lost replies, 2 tries would fail one start-up in a thousand. The tick's bulk cycle never retries.
             self.bus = BearBus(self.port, self.config.buses.bear.baud, reply_timeout_s=self.reply_timeout_s,
                                tries=REQUEST_TRIES)
         except DriverError as exc:
             raise StartupError([f"{self.name}: {exc}"]) from exc
         self.low_latency = self.bus.low_latency
+        self.bus.on_host_stall = self.port_stalls.record
         log.info("%s: %s", self.name, self.low_latency)
         missing = ping_all(self.bus.ping, self.ids, self.ping_rounds, self.ping_retry_s)
         if missing:
@@ -160,14 +166,15 @@ class BearLegs:
                      self.name, self.watchdog_count, 1e3 * self.watchdog_count * cfg.watchdog_unit_s,
                      cfg.watchdog_unit_s, "; the unit is assumed until `bruce-hw-check --probe-watchdog` measures it"
                      if cfg.watchdog_unit_s == ASSUMED_BEAR_WATCHDOG_UNIT_S else "")
-        for _ in self.ids:
-            self.monitor()
         self._seed()
 
     def _seed(self) -> None:
-        """Every actuator's first sample, with retries (before the loop, a lost reply may be asked for again)."""
-        reply = self.bus.bulk_cycle(self.ids, None)
-        self._keep(reply, np.ones(len(self.ids), dtype=bool), time.monotonic())
+        """Every actuator's first sample and temperatures, with retries (before the loop, a lost reply may be asked
+        for again)."""
+        reply = self.bus.bulk_cycle(self.ids, None, extra_reads=MONITOR_REGISTERS)
+        answered = np.ones(len(self.ids), dtype=bool)
+        self._keep(reply, answered, time.monotonic())
+        self._monitored(reply, answered)
 
     def _keep(self, reply, answered: np.ndarray, stamp: float) -> None:
         self._position[answered] = reply.position[answered]
@@ -236,16 +243,21 @@ class BearLegs:
 
     # -- per tick
     def cycle(self, torque: np.ndarray | None, damping: bool = False, retry: bool = False) -> LegReading:
-        """One bulk cycle: goal currents for `torque` (actuator Nm; None: read only), present values back. In
-        damping the BEARs damp by themselves: `damping` changes nothing here. A lost reply keeps that actuator's
-        last sample (its stamp ages); `problem` is set when a sample is older than `safety.max_sensor_age_s` or
-        an actuator lost more than `safety.reply_loss_max` of its replies over the window. `retry` (outside the
-        loop's ticks: before the first command) asks again for lost replies and raises BusTimeout for silent IDs."""
+        """One bulk cycle: goal currents for `torque` (actuator Nm; None: read only), present values back; every
+        MONITOR_EVERY_TICKS cycles the same request also reads every BEAR's temperatures and voltage (a request of
+        their own would hold the bus for another reply's wait, and the cycle's reading with it). In damping the
+        BEARs damp by themselves: `damping` changes nothing here. A lost reply keeps that actuator's last sample
+        (its stamp ages); `problem` is set when a sample is older than `safety.max_sensor_age_s` or an actuator lost
+        more than `safety.reply_loss_max` of its replies over the window. `retry` (outside the loop's ticks: before
+        the first command) asks again for lost replies and raises BusTimeout for silent IDs."""
+        self._monitor_tick += 1
+        monitor = MONITOR_REGISTERS if self._monitor_tick >= MONITOR_EVERY_TICKS else ()
         if torque is None:
-            reply = self.bus.bulk_cycle(self.ids, None, partial=not retry)
+            reply = self.bus.bulk_cycle(self.ids, None, partial=not retry, extra_reads=monitor)
         else:
             goal_iq = np.minimum(np.maximum(torque / self.kt, -self.i_max), self.i_max)
-            reply = self.bus.bulk_cycle(self.ids, self._torque_mode, goal_iq=goal_iq, partial=True)
+            reply = self.bus.bulk_cycle(self.ids, self._torque_mode, goal_iq=goal_iq, partial=True,
+                                        extra_reads=monitor)
         stamp = time.monotonic()
         self.cycles += 1
         if self.cycles == 1:
@@ -258,17 +270,29 @@ class BearLegs:
         for device_id, error in zip(self.ids, reply.error.tolist(), strict=True):
             if error & self._fault_bits:
                 faults[device_id] = reply.flags(device_id)
-        reading = LegReading(self._position.copy(), self._velocity.copy(), self._iq * self.kt,
-                             float(self._stamps.min()), self._stamps.copy(), reply.estop_ids(), faults,
-                             self._loss_problem(stamp))
-        self._monitor_tick += 1
-        if self._monitor_tick >= MONITOR_EVERY_TICKS:
+        if monitor:
             self._monitor_tick = 0
-            self.monitor()
-        return reading
+            self._monitored(reply, answered)
+        return LegReading(self._position.copy(), self._velocity.copy(), self._iq * self.kt,
+                          float(self._stamps.min()), self._stamps.copy(), reply.estop_ids(), faults,
+                          self._loss_problem(stamp))
 
     def silence(self, reading: LegReading, now: float, stalled=None) -> str | None:
+        """The silence rule (`bruce_hw.leg_bus.silence`, with `stalled` the backend's joint_stalled_between, which
+        leaves this port's held time out); but a port call the host held longer than safety.host_stall_max_s, or
+        holds still, is a fault of its own: the motors held their last current that long."""
+        held = self.port_stalls.intervals(float(reading.stamps.min()), now)
+        worst = max((end - start for start, end in held), default=0.0)
+        if worst > self.host_stall_max_s:
+            return (f"the host held its port {1e3 * worst:.1f} ms (requests not sent, replies not handed over: the "
+                    f"kernel's tty work for the port not run) > safety.host_stall_max_s "
+                    f"{1e3 * self.host_stall_max_s:g} ms")
         return silence(self.ids, reading, now, self.dt, self.max_age_s, stalled)
+
+    def _held_since(self, now: float) -> float | None:
+        """Since when the host has held the port call in progress, if it has (drivers.bear's `held_since`)."""
+        bus = self.bus
+        return bus.held_since(now) if bus is not None else None
 
     def _loss_problem(self, now: float) -> str | None:
         ages = now - self._stamps
@@ -291,28 +315,22 @@ class BearLegs:
         return {"bus": self.name, "cycles": self.cycles, "replies_lost": lost, "replies_lost_total": total,
                 "reply_loss_share": total / (self.cycles * len(self.ids)) if self.cycles else 0.0,
                 "watchdog_timeout": self.watchdog_count, "adapter": self.low_latency,
-                "host_stalls": self.bus.stats.host_stalls if self.bus is not None else 0}
+                "host_stalls": self.bus.stats.host_stalls if self.bus is not None else 0,
+                "port_held": self.port_stalls.report()}
 
-    def monitor(self) -> None:
-        """Temperatures and voltage of the next BEAR in turn; a BEAR that does not answer is left to the next
-        bulk cycle to report. Warnings only, as BRUCE-OP."""
-        from drivers.errors import BusTimeout
-
-        k = self._monitor_next
-        self._monitor_next = (k + 1) % len(self.ids)
-        device_id = self.ids[k]
-        try:
-            reply = self.bus.read_status(device_id, MONITOR_REGISTERS, tries=1)
-        except BusTimeout:  # one lost reply is not worth a retry in the tick: the next round asks again
-            return
-        hottest = max(reply[name] for name in MONITOR_REGISTERS[:3])
-        if hottest > TEMPERATURE_WARN_C and not self.temperature[k] > TEMPERATURE_WARN_C:
-            log.warning("%s: ID %d at %.0f C (> %.0f C)", self.name, device_id, hottest, TEMPERATURE_WARN_C)
-        if reply["input_voltage"] < VOLTAGE_WARN_V and not self.voltage[k] < VOLTAGE_WARN_V:
-            log.warning("%s: ID %d input %.1f V (< %.1f V)", self.name, device_id, reply["input_voltage"],
-                        VOLTAGE_WARN_V)
-        self.temperature[k] = hottest
-        self.voltage[k] = reply["input_voltage"]
+    def _monitored(self, reply, answered: np.ndarray) -> None:
+        """The temperatures and voltages a bulk cycle brought (a BEAR that did not answer keeps its last ones).
+        Warnings only, as BRUCE-OP."""
+        hottest = np.max([reply.column(name) for name in MONITOR_REGISTERS[:3]], axis=0)
+        voltage = reply.column("input_voltage")
+        for k in np.flatnonzero(answered):
+            device_id = self.ids[k]
+            if hottest[k] > TEMPERATURE_WARN_C and not self.temperature[k] > TEMPERATURE_WARN_C:
+                log.warning("%s: ID %d at %.0f C (> %.0f C)", self.name, device_id, hottest[k], TEMPERATURE_WARN_C)
+            if voltage[k] < VOLTAGE_WARN_V and not self.voltage[k] < VOLTAGE_WARN_V:
+                log.warning("%s: ID %d input %.1f V (< %.1f V)", self.name, device_id, voltage[k], VOLTAGE_WARN_V)
+        self.temperature[answered] = hottest[answered]
+        self.voltage[answered] = voltage[answered]
         self.monitor_count += 1
 
     def summary(self) -> str:
@@ -322,7 +340,8 @@ class BearLegs:
         lost = int(self.loss.total.sum())
         link = "" if stats is None else (f", {lost} replies lost, {stats.retries} retries, "
                                          f"{stats.rejected_total} bytes/packets rejected, "
-                                         f"{stats.host_stalls} reads the host was late for")
+                                         f"{stats.host_stalls} sends or reads the host held "
+                                         f"(worst {self.port_stalls.worst_s * 1e3:.1f} ms)")
         return f"{self.name}: {self.cycles} bulk cycles in {span:.2f} s ({rate:.0f} Hz){link}"
 
 

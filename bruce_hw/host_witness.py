@@ -1,4 +1,5 @@
-"""When this process was not run: an in-process witness of host stalls (`HostWitness`).
+"""When this process was not run: an in-process witness of host stalls (`HostWitness`), on a log of stall
+intervals (`StallLog`) that a serial bus keeps for its own port calls too.
 
 On a VM (and, more rarely, on any machine) the host is sometimes not run for 1-50 ms: every thread of the process
 stops at once, the loop and the bus and IMU reader threads alike, while the devices go on with their own clocks and
@@ -37,17 +38,104 @@ class Stall:
         return self.end - self.start
 
 
-class HostWitness:
-    def __init__(self, period_s: float = 0.001, tolerance_s: float = STALL_TOLERANCE_S,
-                 clock: Callable[[], float] = time.monotonic):
-        self.period_s, self.tolerance_s, self.clock = period_s, tolerance_s, clock
+class StallLog:
+    """Intervals in which something of this process was held by the host, merged as they come (`record`), and how
+    much of an interval they cover (`stalled_between`). The host witness keeps one (the whole process not run); a
+    serial leg bus keeps one too (its own port calls held in the kernel: `bruce_hw.bear_legs`). `open_since(now)`,
+    if given, says when a stall still in progress began (None: none is), so a stall counts before it has ended."""
+
+    def __init__(self, open_since: Callable[[float], float | None] | None = None):
         self._stalls: deque[Stall] = deque(maxlen=STALL_LOG)
         self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self.count = 0           # stalls seen since the start
+        self._open_since = open_since or (lambda now: None)
+        self.count = 0           # stalls seen since the start (or reset_counts)
         self.total_s = 0.0       # their total length
         self.worst_s = 0.0       # the longest
+
+    def reset_counts(self) -> None:
+        """Count from now on (the backend's activation: stalls during start-up, loading models, are not the run's);
+        the log `stalled_between` reads is kept."""
+        with self._lock:
+            self.count, self.total_s, self.worst_s = 0, 0.0, 0.0
+
+    def record(self, start: float, end: float) -> None:
+        """A stall from `start` to `end`. What overlaps the stall recorded last extends it rather than counting
+        twice."""
+        with self._lock:
+            last = self._stalls[-1] if self._stalls else None
+            if last is not None and start <= last.end:  # the same stall, seen again: extend it
+                if end <= last.end:
+                    return
+                stall = self._stalls[-1] = Stall(last.start, end)
+                self.total_s += end - last.end
+            else:
+                stall = Stall(start, end)
+                self._stalls.append(stall)
+                self.count += 1
+                self.total_s += stall.length
+            self.worst_s = max(self.worst_s, stall.length)
+
+    def intervals(self, t0: float, t1: float) -> list[tuple[float, float]]:
+        """The parts of [t0, t1] the stalls cover, oldest first: those recorded, and one in progress at `t1`."""
+        found: list[tuple[float, float]] = []
+        if t1 <= t0:
+            return found
+        with self._lock:
+            recorded_to = self._stalls[-1].end if self._stalls else -float("inf")
+            for stall in reversed(self._stalls):
+                if stall.end <= t0:
+                    break  # recorded in time order: the older ones end earlier still
+                if stall.start < t1:
+                    found.append((max(stall.start, t0), min(stall.end, t1)))
+        found.reverse()
+        since = self._open_since(t1)
+        if since is not None:
+            start = max(since, recorded_to, t0)
+            if start < t1:
+                found.append((start, t1))
+        return found
+
+    def stalled_between(self, t0: float, t1: float) -> float:
+        """Seconds of [t0, t1] in which the stalls held it."""
+        return sum(end - start for start, end in self.intervals(t0, t1))
+
+    def stalls_since(self, t0: float) -> list[Stall]:
+        """The recorded stalls that ended after `t0`, oldest first."""
+        with self._lock:
+            found = []
+            for stall in reversed(self._stalls):
+                if stall.end <= t0:
+                    break
+                found.append(stall)
+        return found[::-1]
+
+    def report(self) -> dict:
+        """Count, worst and total (ms), for the run's summary and stats."""
+        return {"count": self.count, "worst_ms": 1e3 * self.worst_s, "total_ms": 1e3 * self.total_s}
+
+
+def stalled_union(*logs: StallLog) -> Callable[[float, float], float]:
+    """`stalled_between` over several logs at once: the seconds of [t0, t1] that any of them covers (a VM stall that
+    also held a port call counts once)."""
+    def stalled_between(t0: float, t1: float) -> float:
+        spans = sorted(span for log in logs for span in log.intervals(t0, t1))
+        total, reach = 0.0, -float("inf")
+        for start, end in spans:
+            start = max(start, reach)
+            if end > start:
+                total += end - start
+                reach = end
+        return total
+    return stalled_between
+
+
+class HostWitness(StallLog):
+    def __init__(self, period_s: float = 0.001, tolerance_s: float = STALL_TOLERANCE_S,
+                 clock: Callable[[], float] = time.monotonic):
+        super().__init__(open_since=self._unrecorded_since)
+        self.period_s, self.tolerance_s, self.clock = period_s, tolerance_s, clock
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
         self.last_wake = clock()  # the witness's last wake-up: a stall in progress is the time since
         self.running = False      # its thread is watching (a witness that is not cannot say it was silent)
 
@@ -80,28 +168,9 @@ class HostWitness:
             self.last_wake = now
             due = now + period
 
-    def reset_counts(self) -> None:
-        """Count from now on (the backend's activation: stalls during start-up, loading models, are not the run's);
-        the log `stalled_between` reads is kept."""
-        with self._lock:
-            self.count, self.total_s, self.worst_s = 0, 0.0, 0.0
-
     def record(self, start: float, end: float) -> None:
-        """A stall from `start` to `end`: the thread's own finding, or a test's. What overlaps a stall already recorded
-        extends it rather than counting twice."""
-        with self._lock:
-            last = self._stalls[-1] if self._stalls else None
-            if last is not None and start <= last.end:  # the same stall, seen again: extend it
-                if end <= last.end:
-                    return
-                stall = self._stalls[-1] = Stall(last.start, end)
-                self.total_s += end - last.end
-            else:
-                stall = Stall(start, end)
-                self._stalls.append(stall)
-                self.count += 1
-                self.total_s += stall.length
-            self.worst_s = max(self.worst_s, stall.length)
+        """A stall from `start` to `end`: the thread's own finding, or a test's."""
+        super().record(start, end)
         self.last_wake = max(self.last_wake, end)
 
     def silent_since(self, now: float) -> float | None:
@@ -110,35 +179,9 @@ class HostWitness:
         last = self.last_wake
         return last if self.running and now - last > self.tolerance_s else None
 
-    def stalled_between(self, t0: float, t1: float) -> float:
-        """Seconds of [t0, t1] in which the process was not run: the stalls recorded so far, and one still unrecorded
-        that reaches `t1` (the witness silent for longer than its tolerance at `t1`: a thread that asks right after
-        the process resumed runs before the witness has woken to record the stall)."""
-        if t1 <= t0:
-            return 0.0
-        total = 0.0
-        with self._lock:
-            recorded_to = self._stalls[-1].end if self._stalls else -float("inf")
-            for stall in reversed(self._stalls):
-                if stall.end <= t0:
-                    break  # recorded in time order: the older ones end earlier still
-                total += max(0.0, min(stall.end, t1) - max(stall.start, t0))
-        silent = self.silent_since(t1)
-        if silent is not None:
-            start = max(silent + self.period_s, recorded_to, t0)
-            total += max(0.0, t1 - start)
-        return total
-
-    def stalls_since(self, t0: float) -> list[Stall]:
-        """The stalls that ended after `t0`, oldest first."""
-        with self._lock:
-            found = []
-            for stall in reversed(self._stalls):
-                if stall.end <= t0:
-                    break
-                found.append(stall)
-        return found[::-1]
-
-    def report(self) -> dict:
-        """Count, worst and total (ms), for the run's summary and stats."""
-        return {"count": self.count, "worst_ms": 1e3 * self.worst_s, "total_ms": 1e3 * self.total_s}
+    def _unrecorded_since(self, now: float) -> float | None:
+        """A stall still unrecorded that reaches `now` (the witness silent for longer than its tolerance: a thread
+        that asks right after the process resumed runs before the witness has woken to record the stall): from a
+        period after its last wake-up."""
+        silent = self.silent_since(now)
+        return None if silent is None else silent + self.period_s

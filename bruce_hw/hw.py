@@ -28,7 +28,7 @@ from bruce_hw.backend import Backend, BackendError, LifecycleState
 from bruce_hw.bus_startup import StartupError, ids_text
 from bruce_hw.bus_thread import BusThread
 from bruce_hw.config import RobotConfig
-from bruce_hw.host_witness import HostWitness
+from bruce_hw.host_witness import HostWitness, stalled_union
 from bruce_hw.leg_bus import LegBus, LegReading, LegStartup
 from bruce_hw.leg_kinds import leg_kind_of
 from bruce_hw.types import FootContacts, ImuSample, JointCommand, JointState, RobotState
@@ -52,7 +52,7 @@ IMU_WAIT_S = 0.0005
 # After a host stall, the first read waits at most this long for one bus cycle (and one IMU sample) that began after
 # the stall, instead of acting on the stale reading or tripping on it (docs/safety.md, "Host stalls").
 POST_STALL_WAIT_S = 0.002
-BUS_STOP_TIMEOUT_S = 0.05   # the longest a bus cycle can take (reply timeout, monitor read) with a margin
+BUS_STOP_TIMEOUT_S = 0.05   # the longest a bus cycle can take (reply timeout, host's hold) with a margin
 
 
 def _modules_missing(modules: dict[str, str]) -> list[str]:
@@ -135,6 +135,12 @@ class HwBackend(Backend):
         # When the process was not run (bruce_hw.host_witness): ages are judged on the time the host ran, and a
         # stall up to safety.host_stall_max_s is ridden through.
         self.witness = HostWitness()
+        # The joints' readings are also held back when the host holds the leg bus's own port calls (a kind that
+        # keeps a log of them: `port_stalls`): left out of their age like a stall of the process.
+        port_stalls = getattr(self.legs, "port_stalls", None)
+        self._port_stalls = port_stalls
+        self._joint_stalled = (self.witness.stalled_between if port_stalls is None
+                               else stalled_union(self.witness, port_stalls))
         self.host_stall_max_s = config.safety.host_stall_max_s
         self._last_read_at: float | None = None  # time.monotonic() of the last active read
         self.bus_cycle_us: dict | None = None  # its cycle-time percentiles, once it has ended
@@ -196,6 +202,8 @@ class HwBackend(Backend):
         self._torque = None  # zero goal until the first write
         self._last_read_at = None
         self.witness.reset_counts()  # the run's stalls: from activation on
+        if self._port_stalls is not None:
+            self._port_stalls.reset_counts()
         try:
             self.legs.enable()
         except DriverError as exc:
@@ -348,7 +356,7 @@ class HwBackend(Backend):
             raise self._fail(f"{self.legs.name}: {exc}") from exc
         except Exception as exc:  # whatever a vanished port raises on the bus thread (termios.error, OSError)
             raise self._fail(f"{self.legs.name}: {type(exc).__name__}: {exc}") from exc
-        problem = reading.problem or self.legs.silence(reading, time.monotonic(), self.witness.stalled_between)
+        problem = reading.problem or self.legs.silence(reading, time.monotonic(), self._joint_stalled)
         if problem and state is not LifecycleState.FAULT:
             raise self._fail(f"{self.legs.name}: {problem}")
         if reading.faults and state is not LifecycleState.FAULT:
@@ -386,6 +394,9 @@ class HwBackend(Backend):
     def stalled_between(self, t0: float, t1: float) -> float:
         return self.witness.stalled_between(t0, t1)
 
+    def joint_stalled_between(self, t0: float, t1: float) -> float:
+        return self._joint_stalled(t0, t1)
+
     def _age(self, stamp: float) -> float:
         """How long the process has run since `stamp`: its age less the host stalls in between."""
         now = time.monotonic()
@@ -393,23 +404,29 @@ class HwBackend(Backend):
 
     def _ride_through(self, bus: BusThread) -> None:
         """A read after a host stall: wait (at most POST_STALL_WAIT_S) for a bus cycle and an IMU sample that began
-        after it, so the tick acts on fresh data instead of the stale reading. A stall longer than
-        safety.host_stall_max_s damps at once (the motors held their last current that long); the safety stage
-        then trips on the same stall, naming its length."""
+        after it, so the tick acts on fresh data instead of the stale reading; after the host held the leg bus's
+        port (and no longer does), for a bus cycle. A stall longer than safety.host_stall_max_s damps at once (the
+        motors held their last current that long); the safety stage then trips on the same stall, naming its
+        length."""
         now = time.monotonic()
         last, self._last_read_at = self._last_read_at, now
         witness = self.witness
         if last is None:
             return
         # the witness wakes every millisecond: a silent witness is a stall that has just ended and is not yet recorded
-        if not witness.stalled_between(last, now) and now - witness.last_wake <= witness.tolerance_s:
+        host = bool(witness.stalled_between(last, now)) or now - witness.last_wake > witness.tolerance_s
+        # the port held longer than a stall the witness counts (a read pass a little late is not worth a wait), and
+        # no longer held now
+        port = (self._port_stalls is not None and self._port_stalls.stalled_between(last, now) > witness.tolerance_s
+                and not self._port_stalls.intervals(now, now + 1e-9))
+        if not (host or port):
             return
         deadline = now + POST_STALL_WAIT_S
-        _, imu_stamp = self.sense.latest() if self.sense is not None else (None, None)
+        _, imu_stamp = self.sense.latest() if self.sense is not None and host else (None, None)
         while time.monotonic() < deadline:
             fresh_legs = bus.last_start is not None and bus.last_start >= now and bus.last_end >= bus.last_start
             fresh_imu = imu_stamp is None or (self.sense.latest()[1] or 0.0) > now
-            if fresh_legs and fresh_imu and witness.last_wake >= now:
+            if fresh_legs and fresh_imu and (not host or witness.last_wake >= now):
                 break
             time.sleep(0.0001)
         self._last_read_at = time.monotonic()
@@ -430,7 +447,7 @@ class HwBackend(Backend):
         return self.sense.read()
 
     def _joint_temperature(self) -> np.ndarray:
-        """Per joint, the hottest actuator it moves with or takes torque from; recomputed after monitor reads."""
+        """Per joint, the hottest actuator it moves with or takes torque from; recomputed when new temperatures came."""
         if self._temperature_count != self.legs.monitor_count or self._temperature is None:
             t = self.legs.temperature
             self._temperature = np.where(self._drives, t[None, :], -np.inf).max(axis=1)

@@ -41,7 +41,9 @@ class LegStartup:
 
 class LegBus(Protocol):
     """A leg bus as the backend drives it: start-up (`open`, `configure`), `enable`/`disable`/`damp`, one `cycle`
-    per tick (torques out, a `LegReading` back; None: read only), the silence rule, link figures, `close`."""
+    per tick (torques out, a `LegReading` back; None: read only), the silence rule, link figures, `close`.
+    Optional: `port_stalls`, a `bruce_hw.host_witness.StallLog` of the time the host held the bus's own I/O (a
+    serial port's flush waiting in the kernel): the backend leaves it out of the joint data's age."""
 
     kind: str                 # what the bus is, for messages that name it without its port ("BEAR bus")
     name: str                 # the bus and where it is ("BEAR bus /dev/ttyUSB0")

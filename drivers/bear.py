@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import struct
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +52,9 @@ DEFAULT_BAUD = 8_000_000
 REPLY_GAP_S = 0.0015
 # A read returns within its slice plus this much scheduling; a pass that took longer means the host did not run us.
 STALL_TOLERANCE_S = 0.0005
+# A flush and write of a request take microseconds; one that took longer than this was held by the host (the kernel's
+# tty work for this port not run: docs/timing.md, "Scheduling") and the request had not gone out meanwhile.
+SEND_STALL_S = 0.001
 # Most host time a call does not count against the device: beyond it the readings are too old for any data-age limit
 # (safety.max_sensor_age_s is at most 50 ms), so waiting longer would gain nothing.
 MAX_STALL_CREDIT_S = 0.05
@@ -159,6 +162,10 @@ class BearBus:
         self.tries = tries
         self.read_slice_s = read_slice_s
         self.stats = stats if stats is not None else LinkStats()
+        # Time the host held this port's I/O, not the devices' silence: `on_host_stall(start, end)` hears of each
+        # (a send held past SEND_STALL_S, a read pass the host was late for); `held_since(now)` of one in progress.
+        self.on_host_stall: Callable[[float, float], None] | None = None
+        self._call: tuple[float, float] | None = None  # the port call in progress: (start, longest it takes itself)
         self._parser = StatusParser(self.stats)
         self._io_errors = PORT_ERRORS
         try:
@@ -306,11 +313,13 @@ class BearBus:
         return BulkReply(self.port, ids, names, table, np.array([got[i].error for i in ids], dtype=np.uint8))
 
     def bulk_cycle(self, ids: Sequence[int], mode: Mode | int | str | None, goal_position=None, goal_velocity=None,
-                   goal_iq=None, partial: bool = False) -> BulkReply:
+                   goal_iq=None, partial: bool = False, extra_reads: Sequence[str] = ()) -> BulkReply:
         """One control tick: read present_position, present_velocity and present_iq of every ID and write the
         mode's goals (force: goal_position, goal_velocity, goal_iq; torque: goal_iq; position: goal_position;
         velocity: goal_velocity; None: read only). Goals are arrays in ID order; the reply's `position`,
-        `velocity`, `iq` and `error` are arrays in ID order. `partial`: see `bulk_comm`."""
+        `velocity`, `iq` and `error` are arrays in ID order. `extra_reads`: status registers read in the same
+        request (`column(name)`), e.g. temperatures now and then, at a few bytes of wire time instead of a request
+        of their own. `partial`: see `bulk_comm`."""
         writes: tuple[str, ...] = ()
         columns = []
         if mode is not None:
@@ -325,7 +334,7 @@ class BearBus:
                     raise ValueError(f"{name}: {column.size} values for {len(ids)} IDs")
                 columns.append(column)
         values = np.column_stack(columns).tolist() if columns else None
-        return self.bulk_comm(ids, CYCLE_READS, writes, values, partial=partial)
+        return self.bulk_comm(ids, CYCLE_READS + tuple(extra_reads), writes, values, partial=partial)
 
     def cycle_budget_s(self, n_ids: int, n_read: int = len(CYCLE_READS), n_write: int = 3) -> float:
         """Longest a bulk call can take before BusTimeout, all tries included (excluding the host's scheduling)."""
@@ -338,12 +347,38 @@ class BearBus:
         return n_bytes * 10 / self.baud  # 8N1: 10 bits a byte
 
     def _send(self, packet: bytes) -> None:
-        """Flush stale input (late replies of an earlier request), then write the whole packet."""
+        """Flush stale input (late replies of an earlier request), then write the whole packet. The flush waits in
+        the kernel for the port's receive work to finish (a tty worker that real-time threads keep from its CPU holds
+        it for milliseconds): that wait is the host's, reported to `on_host_stall`."""
+        start = time.monotonic()
+        self._call = (start, SEND_STALL_S)
         try:
             self._serial.reset_input_buffer()
             self._serial.write(packet)
         except self._io_errors as exc:
             raise DriverError(f"{self.port}: write failed: {exc}") from exc
+        finally:
+            self._call = None
+            end = time.monotonic()
+            if end - start > SEND_STALL_S:
+                self._host_stall(start, end)
+
+    def held_since(self, now: float) -> float | None:
+        """If the port call in progress (a send, a read pass) has taken longer than it takes by itself, since when
+        the host has held it (a send: from its start, the request not out; a read: from the end of its slice), else
+        None: a call that never ends is seen before it ends."""
+        call = self._call
+        if call is None:
+            return None
+        start, allowance = call
+        if now - start <= allowance:
+            return None
+        return start if allowance == SEND_STALL_S else start + allowance
+
+    def _host_stall(self, start: float, end: float) -> None:
+        self.stats.host_stalls += 1
+        if self.on_host_stall is not None:
+            self.on_host_stall(start, end)
 
     def _read(self, device_id: int, registers: list[Register], tries: int | None = None) -> RegisterReply:
         if not registers:
@@ -375,28 +410,21 @@ class BearBus:
         self._parser.clear()
         self._parser.expect(length, ids)
         self._send(request)
-        last = time.monotonic()
-        deadline, credit = last + budget, MAX_STALL_CREDIT_S
+        deadline, credit = time.monotonic() + budget, MAX_STALL_CREDIT_S
+        allowance = self.read_slice_s + STALL_TOLERANCE_S  # a pass's own time: its read slice and the scheduling
         got: dict[int, StatusPacket] = {}
         while len(got) < len(ids):
             now = time.monotonic()
-            # A pass of this loop takes at most a read slice unless the host did not run this thread (preempted, a
-            # paused VM): the replies that came meanwhile are still on their way through the kernel (the tty's
-            # work item was stalled too), so that time is the host's, not the device's, and does not count against
-            # the reply (up to MAX_STALL_CREDIT_S in all: a call stays bounded).
-            stalled = min(now - last - self.read_slice_s - STALL_TOLERANCE_S, credit)
-            if stalled > 0:
-                deadline += stalled
-                credit -= stalled
-                self.stats.host_stalls += 1
-            last = now
             if now >= deadline:
                 break
             missing = (len(ids) - len(got)) * per_reply - self._parser.pending
+            self._call = (now, allowance)
             try:
                 chunk = self._serial.read(max(1, missing))  # returns when `missing` bytes are in or after a slice
             except self._io_errors as exc:
                 raise DriverError(f"{self.port}: read failed: {exc}") from exc
+            finally:
+                self._call = None
             if chunk:
                 # The replies come back to back: once they have started, a pause longer than REPLY_GAP_S means the
                 # rest is lost, so a lost reply costs that gap, not the whole timeout (which covers the bus delay
@@ -407,6 +435,16 @@ class BearBus:
                     self.stats.reject("duplicate")
                 else:
                     got[packet.id] = packet
+            # A pass takes at most its allowance unless the host did not run this thread (preempted, a paused VM):
+            # the replies that came meanwhile are still on their way through the kernel (the tty's work item was
+            # stalled too), so that time is the host's, not the device's, and does not count against the reply (up
+            # to MAX_STALL_CREDIT_S in all: a call stays bounded).
+            end = time.monotonic()
+            stalled = min(end - now - allowance, credit)
+            if stalled > 0:
+                deadline += stalled
+                credit -= stalled
+                self._host_stall(end - stalled, end)
             if ids[-1] in got:
                 break  # replies come in request order: one still missing before the last is lost, not late
         if len(got) < len(ids) and self._parser.pending:

@@ -46,7 +46,7 @@ class LinkStats:
     rejected: Counter = field(default_factory=Counter)  # reason -> count ("checksum", "length", "foreign", ...)
     timeouts: int = 0
     retries: int = 0
-    host_stalls: int = 0  # reads this host was late for by more than a slice (not counted against the device)
+    host_stalls: int = 0  # sends the host held, reads it was late for by more than a slice (not the device's)
 
     def reject(self, reason: str) -> None:
         self.rejected[reason] += 1

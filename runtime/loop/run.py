@@ -430,7 +430,7 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     """The ticks. `sealed`: the backend's truth is sealed, and opened only while the observers run."""
     stats = summary.loop  # each section timed on the wall clock and on the thread's CPU clock (the loop's own cost)
     stats.period_s = config.dt
-    safety = SafetyStage(config, stalled=backend.stalled_between)
+    safety = SafetyStage(config, stalled=backend.stalled_between, joint_stalled=backend.joint_stalled_between)
     n_ticks = None if duration is None else round(duration * config.loop_hz)
     # The policy runs on the backend's clock, once per policy period from the first tick: a missed deadline does not
     # slow the gait clock or the command schedule (docs/timing.md).

@@ -5,7 +5,8 @@ Per tick, in this order:
    `safety.max_sensor_age_s`; tilt beyond `safety.tilt_limit_deg` for `safety.tilt_ticks` ticks; an achieved
    loop rate below `safety.min_rate_hz` over the last `safety.rate_window_s` (on the backend's clock: the robot's
    time; a late tick alone is not a fault, docs/timing.md). Ages and the rate are judged on the time the process
-   was run: a host stall (`stalled`, the backend's `stalled_between`) is neither old data nor a slow loop, up to
+   was run: a host stall (`stalled`, the backend's `stalled_between`; for the joints also the leg bus's port calls
+   the host held, `joint_stalled`) is neither old data nor a slow loop, up to
    `safety.host_stall_max_s` between two ticks; a longer one trips (docs/safety.md, "Host stalls"). The loop adds
    its own (a model returning non-finite values, SIGINT or SIGTERM) through `trip()`.
 2. The command filter: a non-finite torque trips; torque that pushes a joint further past a position soft
@@ -39,7 +40,7 @@ class SafetyState(enum.IntEnum):
 
 
 class SafetyStage:
-    def __init__(self, config: RobotConfig, stalled=None):
+    def __init__(self, config: RobotConfig, stalled=None, joint_stalled=None):
         cfg = config.safety
         self.config = config
         self.lower_soft = config.q_lower + cfg.position_margin
@@ -58,6 +59,7 @@ class SafetyStage:
         self.rate_ticks = max(2, math.ceil(cfg.min_rate_hz * cfg.rate_window_s))
         self.damping_kd = cfg.damping_kd
         self.stalled = stalled or (lambda t0, t1: 0.0)  # seconds of [t0, t1] the process was not run
+        self.joint_stalled = joint_stalled  # ... or the joint readings were held back by the host (None: the same)
         self.host_stall_max = cfg.host_stall_max_s
         self.reset()
 
@@ -114,12 +116,12 @@ class SafetyStage:
             return self.trip("non-finite joint reading (q or qd)")
         if not all_finite(imu.gyro, imu.accel):
             return self.trip("non-finite IMU reading")
-        stamp = min(joints.stamp, imu.stamp)
-        age = now - stamp
-        if age > self.max_age and age - self.stalled(stamp, now) > self.max_age:
-            which = "joint" if joints.stamp <= imu.stamp else "IMU"
-            return self.trip(f"stale {which} data: {1e3 * age:.1f} ms old > safety.max_sensor_age_s "
-                             f"{1e3 * self.max_age:.1f} ms")
+        sources = (("joint", joints.stamp, self.joint_stalled or self.stalled), ("IMU", imu.stamp, self.stalled))
+        for which, stamp, held in sorted(sources, key=lambda source: source[1]):  # the older named first
+            age = now - stamp
+            if age > self.max_age and age - held(stamp, now) > self.max_age:
+                return self.trip(f"stale {which} data: {1e3 * age:.1f} ms old > safety.max_sensor_age_s "
+                                 f"{1e3 * self.max_age:.1f} ms")
         if cos_tilt(imu) < self.cos_tilt_limit:
             self.tilted_ticks += 1
             if self.tilted_ticks >= self.tilt_ticks:

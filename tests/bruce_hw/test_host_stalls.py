@@ -7,18 +7,29 @@ shipped one (500 Hz over 50 ms: a 30-ms freeze trips it unless the freeze is dis
 age is 50 ms, as in the other emulator tests, since the emulator's own packets are sometimes tens of milliseconds late
 on a shared machine (device lateness, which no host-side rule may excuse); the stall bound is 45 ms (below the BEARs'
 50 ms watchdog), so a freeze of 30 ms lies inside it and one of 80 ms well outside.
+
+The host also holds the leg bus's own port at times while the process runs: the kernel's tty work for the port not run
+(docs/timing.md, "Scheduling"), so the bus thread's flush before a request waits in the kernel. The last tests hold
+that flush in an in-process hw backend (the emulators' WALL_CLOCK_SLACK settings: data age 50 ms, stall bound 90 ms,
+the BEARs' watchdog 100 ms): a hold longer than the data age and shorter than the bound is ridden through and counted,
+a longer one ends in damping naming it, and a silent BEAR beside a hold is still found.
 """
 
 import json
 import os
 import signal
 import subprocess
+import threading
 import time
 
 import pytest
-from support.emulated_robot import BEAR_IDS, DXL_IDS
+from support.emulated_robot import BEAR_IDS, DXL_IDS, WALL_CLOCK_SLACK
 
+from bruce_hw import BackendError
+from bruce_hw.config import load_config
+from bruce_hw.hw import make_hw_backend
 from runtime.loop.exit import ExitCode
+from runtime.loop.run import run_session
 
 pytestmark = pytest.mark.usefixtures("no_memory_lock")
 STALL_BOUND_S = 0.045
@@ -118,3 +129,69 @@ def test_an_estop_during_a_stall_is_acted_on_at_the_first_tick_after_it(devices,
     assert "E-stop" in stats["stop_cause"] or "e-stop" in stats["stop_cause"], stats["stop_cause"]
     assert devices.status()["bear"]["torque_enable"] == [3] * 10
     assert "host stall" not in stats["stop_cause"]  # 20 ms: ridden through, then the E-stop acted on
+
+
+# -- the leg port held by the host's kernel ---------------------------------------------------------------------
+def hold_next_flush(backend, seconds: float) -> None:
+    """The legs' next flush before a request waits `seconds` in the kernel (as behind a tty worker kept from its
+    CPU); the flushes after it are the port's own."""
+    serial_port = backend.legs.bus._serial
+    real_flush = type(serial_port).reset_input_buffer.__get__(serial_port)
+
+    def held_flush():
+        serial_port.reset_input_buffer = real_flush
+        time.sleep(seconds)
+        real_flush()
+
+    serial_port.reset_input_buffer = held_flush
+
+
+def stand_with_a_held_port(devices, tmp_path, hold_s: float, before=None):
+    """A 2.5-s stand, in process, whose leg port is held `hold_s` once, 1 s in (after `before()`); the stats."""
+    config = load_config(overrides=devices.overrides + WALL_CLOCK_SLACK)
+    assert config.safety.max_sensor_age_s < 0.07 < config.safety.host_stall_max_s < 0.12
+    backend = make_hw_backend(config, check_imu=False)
+    stats = tmp_path / "stats.json"
+
+    def hold():
+        if before is not None:
+            before()
+        hold_next_flush(backend, hold_s)
+
+    timer = threading.Timer(1.0, hold)
+    timer.start()
+    try:
+        run_session(backend, config, duration=2.5, realtime=True, controller_kind="standing", stats_path=stats)
+    finally:
+        timer.cancel()
+    return json.loads(stats.read_text())
+
+
+@pytest.mark.usefixtures("no_memory_lock")
+def test_a_leg_port_the_host_holds_below_the_bound_is_ridden_through_and_counted(devices, tmp_path):
+    """70 ms held: the BEARs' data is older than the 50-ms age bound, but nobody asked them anything meanwhile."""
+    stats = stand_with_a_held_port(devices, tmp_path, 0.070)
+    assert stats["exit_code"] == ExitCode.OK and stats["stop_cause"] == "duration reached", stats["stop_cause"]
+    held = stats["link"]["legs"]["port_held"]
+    assert held["count"] >= 1 and held["worst_ms"] >= 69.0, held
+    assert devices.status()["bear"]["torque_enable"] == [3] * 10  # the run's own end: damping
+
+
+@pytest.mark.usefixtures("no_memory_lock")
+def test_a_leg_port_the_host_holds_beyond_the_bound_ends_in_damping_naming_it(devices, tmp_path):
+    with pytest.raises(BackendError) as info:
+        stand_with_a_held_port(devices, tmp_path, 0.120)
+    message = str(info.value)
+    assert "the host held its port" in message and "safety.host_stall_max_s 90 ms" in message, message
+    assert float(message.split("held its port ")[1].split(" ms")[0]) >= 90.0
+    assert devices.status()["bear"]["torque_enable"] == [3] * 10
+
+
+@pytest.mark.usefixtures("no_memory_lock")
+def test_a_silent_bear_beside_a_held_port_is_still_found(devices, tmp_path):
+    """BEAR 4 goes silent and the port is held 40 ms right after: the hold is left out of its age, the rest of the
+    silence is not."""
+    with pytest.raises(BackendError) as info:
+        stand_with_a_held_port(devices, tmp_path, 0.040, before=lambda: devices.send("silence bear 4"))
+    message = str(info.value)
+    assert "no reply from ID(s) 4" in message and "held its port" not in message, message

@@ -13,7 +13,7 @@ import pytest
 from support.paths import REPO
 from support.safety_fixtures import robot, running_stage
 
-from bruce_hw.host_witness import HostWitness
+from bruce_hw.host_witness import HostWitness, StallLog, stalled_union
 from bruce_hw.leg_bus import LegReading, silence
 
 IDS = (1, 2, 3)
@@ -36,6 +36,29 @@ def test_stalled_between_counts_only_the_overlap():
     assert [round(s.length, 3) for s in witness.stalls_since(10.015)] == [0.02, 0.005]
     assert witness.report() == {"count": 2, "worst_ms": pytest.approx(20.0), "total_ms": pytest.approx(25.0)}
 
+
+
+def test_a_port_held_by_the_host_counts_once_beside_a_stall_and_while_it_lasts():
+    """The leg bus's own log (a flush held in the kernel) and the witness's: an interval both cover counts once, and
+    a send still held at `t1` counts from its start, before it has been recorded."""
+    witness = HostWitness()
+    sending = {"since": None}
+    port = StallLog(open_since=lambda now: sending["since"])
+    witness.record(10.0, 10.010)
+    port.record(10.005, 10.012)  # held across the end of the process's stall
+    port.record(11.0, 11.004)
+    both = stalled_union(witness, port)
+    assert both(9.0, 12.0) == pytest.approx(0.016)
+    assert both(10.008, 11.002) == pytest.approx(0.006)
+    assert port.report() == {"count": 2, "worst_ms": pytest.approx(7.0), "total_ms": pytest.approx(11.0)}
+    sending["since"] = 11.5  # a send held since 11.5, still in progress
+    assert port.stalled_between(11.0, 11.52) == pytest.approx(0.024)
+    assert both(11.4, 11.52) == pytest.approx(0.02)
+    # joint data aged only while the port was held is not silent; the same age without the hold is
+    now = 11.52
+    held = reading([11.509, 11.509, 11.509])
+    assert silence(IDS, held, now, DT, MAX_AGE, both) is None
+    assert "ID(s) 1, 2, 3" in silence(IDS, held, now, DT, MAX_AGE, witness.stalled_between)
 
 def test_an_actuator_is_silent_on_the_time_the_process_ran():
     now = 100.0
@@ -104,7 +127,7 @@ def test_the_bus_thread_holds_the_command_on_the_time_the_process_ran():
 WITNESS_CHILD = """
 import sys, time
 sys.path.insert(0, {root!r})
-from bruce_hw.host_witness import HostWitness
+from bruce_hw.host_witness import HostWitness, StallLog, stalled_union
 w = HostWitness(); w.start()
 print("ready", flush=True)
 sys.stdin.readline()  # the parent stops and continues us, then writes a line

@@ -131,3 +131,58 @@ def test_a_stall_beyond_the_credit_costs_the_replies(emulator):
         stall_next_read(bus, MAX_STALL_CREDIT_S + 0.03)
         assert bus.bulk_cycle(IDS, None, partial=True).lost_ids == tuple(IDS)
         assert bus.stats.host_stalls >= 1
+
+
+def test_a_send_the_host_holds_is_reported_as_the_hosts_time(emulator):
+    """The kernel holds the flush before a request (its tty work for the port not run: docs/timing.md,
+    "Scheduling"): the request has not gone out, so that time is reported to `on_host_stall`, and `held_since`
+    says so while it lasts; a send that the host did not hold reports nothing."""
+    held: list[tuple[float, float]] = []
+    seen_while_held: list[float | None] = []
+    with BearBus(emulator.path, reply_timeout_s=0.02) as bus:
+        bus.on_host_stall = lambda start, end: held.append((start, end))
+        assert bus.bulk_cycle(IDS, None, partial=True).lost_ids == ()
+        assert held == [] and bus.held_since(time.monotonic()) is None
+        serial_port = bus._serial
+        real_flush = type(serial_port).reset_input_buffer.__get__(serial_port)
+
+        def held_flush():
+            serial_port.reset_input_buffer = real_flush
+            time.sleep(0.012)
+            seen_while_held.append(bus.held_since(time.monotonic()))
+            real_flush()
+
+        serial_port.reset_input_buffer = held_flush
+        started = time.monotonic()
+        reply = bus.bulk_cycle(IDS, None, partial=True)
+        assert reply.lost_ids == ()  # the replies to the request sent after the hold
+        assert seen_while_held and seen_while_held[0] is not None and seen_while_held[0] >= started
+        assert bus.held_since(time.monotonic()) is None
+        sends = [(start, end) for start, end in held if start == seen_while_held[0]]
+        assert len(sends) == 1 and sends[0][1] - sends[0][0] >= 0.012, held
+        assert bus.stats.host_stalls >= 1
+
+
+def test_a_read_pass_the_host_holds_counts_from_the_end_of_its_slice_while_it_lasts(emulator):
+    """A read pass has its slice to return in; past it (plus the scheduling tolerance) the host holds it, and
+    `held_since` says so before the pass has ended; once it has, `on_host_stall` hears of the same interval."""
+    held: list[tuple[float, float]] = []
+    seen: list[tuple[float, float | None]] = []
+    with BearBus(emulator.path, reply_timeout_s=0.02) as bus:
+        bus.on_host_stall = lambda start, end: held.append((start, end))
+        serial_port = bus._serial
+        real_read = type(serial_port).read.__get__(serial_port)
+
+        def held_read(n):
+            serial_port.read = real_read
+            started = time.monotonic()
+            time.sleep(0.010)
+            seen.append((started, bus.held_since(time.monotonic())))
+            return real_read(n)
+
+        serial_port.read = held_read
+        assert bus.bulk_cycle(IDS, None, partial=True).lost_ids == ()
+        (started, since), = seen
+        assert since is not None and started - 0.001 < since <= started + bus.read_slice_s + 0.001
+        assert any(start <= since + 0.001 and end >= started + 0.010 for start, end in held), held
+        assert bus.held_since(time.monotonic()) is None

@@ -1,0 +1,61 @@
+"""The BEAR legs' bulk cycle against the driver's emulator on a pseudo-terminal (drivers/emulators/bear.py): the
+temperatures and voltages ride in the bulk cycle's own request, never in one of their own."""
+
+import logging
+
+import numpy as np
+import pytest
+
+from bruce_hw.bear_legs import MONITOR_EVERY_TICKS, BearLegs
+from bruce_hw.config import load_config
+from drivers.emulators.bear import BearBusEmulator
+
+IDS = list(range(1, 11))
+
+
+@pytest.fixture
+def legs():
+    with BearBusEmulator(IDS) as emulator:
+        config = load_config(overrides=[f"buses.bear.port={emulator.path}"])
+        legs = BearLegs(config, ping_rounds=2, ping_retry_s=0.01, clear_attempts=2, reply_timeout_s=0.02)
+        legs.open()
+        try:
+            yield legs, emulator
+        finally:
+            legs.close()
+
+
+def test_temperatures_and_voltages_come_with_the_bulk_cycle_not_a_request_of_their_own(legs, caplog):
+    legs, emulator = legs
+    emulator.set_register_value(3, "winding_temperature", 80.0)
+    emulator.set_register_value(7, "input_voltage", 13.0)
+    assert np.isnan(legs.temperature).all() and legs.monitor_count == 0
+    packets = legs.bus.stats.packets
+    with caplog.at_level(logging.WARNING, logger="bruce_hw.hw"):
+        for _ in range(2 * MONITOR_EVERY_TICKS):
+            reading = legs.cycle(None)
+            assert reading.problem is None
+    # one reply per BEAR per cycle, and nothing else on the bus
+    assert legs.bus.stats.packets - packets == 2 * MONITOR_EVERY_TICKS * len(IDS)
+    assert legs.monitor_count == 2
+    assert legs.temperature[2] == pytest.approx(80.0) and legs.temperature[0] == pytest.approx(30.0)
+    assert legs.voltage[6] == pytest.approx(13.0) and legs.voltage[0] == pytest.approx(24.0)
+    warnings = [r.getMessage() for r in caplog.records]
+    assert sum("ID 3 at 80 C" in w for w in warnings) == 1  # warned once, on crossing
+    assert sum("ID 7 input 13.0 V" in w for w in warnings) == 1
+
+
+def test_a_bear_that_does_not_answer_the_monitoring_cycle_keeps_its_last_figures(legs):
+    legs, emulator = legs
+    for _ in range(MONITOR_EVERY_TICKS):
+        legs.cycle(None)
+    assert legs.temperature[4] == pytest.approx(30.0)
+    emulator.set_register_value(5, "winding_temperature", 60.0)
+    emulator.silence([5])
+    for _ in range(MONITOR_EVERY_TICKS):
+        legs.cycle(None)
+    assert legs.monitor_count == 2 and legs.temperature[4] == pytest.approx(30.0)  # its last figure, not NaN
+    emulator.silence([5], False)
+    for _ in range(MONITOR_EVERY_TICKS):
+        legs.cycle(None)
+    assert legs.temperature[4] == pytest.approx(60.0)
