@@ -95,6 +95,10 @@ class StallLog:
                 found.append((start, t1))
         return found
 
+    def holding(self, now: float) -> bool:
+        """A stall is in progress at `now`."""
+        return self._open_since(now) is not None
+
     def stalled_between(self, t0: float, t1: float) -> float:
         """Seconds of [t0, t1] in which the stalls held it."""
         return sum(end - start for start, end in self.intervals(t0, t1))

@@ -418,7 +418,7 @@ class HwBackend(Backend):
         # the port held longer than a stall the witness counts (a read pass a little late is not worth a wait), and
         # no longer held now
         port = (self._port_stalls is not None and self._port_stalls.stalled_between(last, now) > witness.tolerance_s
-                and not self._port_stalls.intervals(now, now + 1e-9))
+                and not self._port_stalls.holding(now))
         if not (host or port):
             return
         deadline = now + POST_STALL_WAIT_S

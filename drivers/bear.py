@@ -165,7 +165,8 @@ class BearBus:
         # Time the host held this port's I/O, not the devices' silence: `on_host_stall(start, end)` hears of each
         # (a send held past SEND_STALL_S, a read pass the host was late for); `held_since(now)` of one in progress.
         self.on_host_stall: Callable[[float, float], None] | None = None
-        self._call: tuple[float, float] | None = None  # the port call in progress: (start, longest it takes itself)
+        # The port call in progress: (when it has taken longer than it takes by itself, since when it is then held)
+        self._call: tuple[float, float] | None = None
         self._parser = StatusParser(self.stats)
         self._io_errors = PORT_ERRORS
         try:
@@ -351,7 +352,7 @@ class BearBus:
         the kernel for the port's receive work to finish (a tty worker that real-time threads keep from its CPU holds
         it for milliseconds): that wait is the host's, reported to `on_host_stall`."""
         start = time.monotonic()
-        self._call = (start, SEND_STALL_S)
+        self._call = (start + SEND_STALL_S, start)
         try:
             self._serial.reset_input_buffer()
             self._serial.write(packet)
@@ -368,12 +369,7 @@ class BearBus:
         the host has held it (a send: from its start, the request not out; a read: from the end of its slice), else
         None: a call that never ends is seen before it ends."""
         call = self._call
-        if call is None:
-            return None
-        start, allowance = call
-        if now - start <= allowance:
-            return None
-        return start if allowance == SEND_STALL_S else start + allowance
+        return call[1] if call is not None and now > call[0] else None
 
     def _host_stall(self, start: float, end: float) -> None:
         self.stats.host_stalls += 1
@@ -418,7 +414,7 @@ class BearBus:
             if now >= deadline:
                 break
             missing = (len(ids) - len(got)) * per_reply - self._parser.pending
-            self._call = (now, allowance)
+            self._call = (now + allowance, now + allowance)
             try:
                 chunk = self._serial.read(max(1, missing))  # returns when `missing` bytes are in or after a slice
             except self._io_errors as exc:
