@@ -305,6 +305,7 @@ class BearBusEmulator:
         self.replies = 0  # reply packets the BEARs produced, spoiled or dropped ones included
         self.reply_losses: Counter[str] = Counter()  # set_reply_loss: "drop", "checksum", "truncate", "garbage"
         self.reply_delay = ReplyDelay()  # set_reply_delay: how late the answers start
+        self._estop_unsent = False  # the E-stop input went on, and no reply has carried its bit yet
 
     # -- lifecycle --
     def start(self) -> BearBusEmulator:
@@ -382,6 +383,7 @@ class BearBusEmulator:
             bear = self._bears[device_id]
             if mask & BearError.WATCHDOG_ESTOP:
                 bear.estop = on
+                self._estop_unsent = on
             if mask & BearError.COMMUNICATION:
                 bear.comm_warning = on
             rest = int(mask & ~(_ESTOP | _COMM) & 0x7F)
@@ -501,7 +503,8 @@ class BearBusEmulator:
         happened (a watchdog expiry: when detected): every change of a BEAR's torque_enable as read, with its cause
         (`bear 3 torque_enable 1 -> 3 (watchdog: 51.2 ms without a packet)`, `(host write)`, `(e-stop input)`,
         `(fault: joint_limit)`, `(power cycle)`, ...); a watchdog_timeout taking effect; a config write ignored
-        because torque is enabled; unplug / plug; reply loss and reply delay settings. "bear" is `name`."""
+        because torque is enabled; unplug / plug; reply loss and reply delay settings; the first reply that carries
+        the E-stop bit after the input went on (`bear first reply with the E-stop bit sent`). "bear" is `name`."""
         return self._events.drain()
 
     @property
@@ -531,6 +534,11 @@ class BearBusEmulator:
         if reply and self._pty is not None:
             self.reply_delay.wait(arrived)
             self._pty.send(reply)
+            if self._estop_unsent:  # when the host could first know: the reply that carries the bit leaves
+                with self._lock:
+                    first, self._estop_unsent = self._estop_unsent, False
+                if first:
+                    self._events.add(f"{self.name} first reply with the E-stop bit sent")
         if bulk and self.on_bulk is not None:
             with self._lock:
                 self.on_bulk()

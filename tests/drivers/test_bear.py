@@ -735,3 +735,25 @@ def test_a_lost_last_reply_costs_the_reply_gap_not_the_timeout(emulator, bus):
     t0 = time.perf_counter()
     reply = bus.bulk_cycle(IDS, None, partial=True)
     assert reply.lost_ids == tuple(IDS) and time.perf_counter() - t0 >= 0.2
+
+
+def test_the_first_reply_that_carries_the_estop_bit_is_logged_when_it_leaves():
+    """The moment the host could first know of an E-stop: the reply that carries bit 3 leaving the emulator (after
+    any reply delay), logged once per press."""
+    with BearBusEmulator([1, 2]) as emu, BearBus(emu.path, reply_timeout_s=0.05) as bus:
+        emu.set_reply_delay(0.010)
+        emu.drain_events()
+        emu.set_estop(True)
+        pressed = time.monotonic()
+        bus.bulk_cycle([1, 2], None)
+        received = time.monotonic()
+        bus.bulk_cycle([1, 2], None)
+        sent = [stamp for stamp, text in emu.drain_events() if text == "bear first reply with the E-stop bit sent"]
+        assert len(sent) == 1 and pressed + 0.010 <= sent[0] <= received
+        emu.set_estop(False)
+        bus.bulk_cycle([1, 2], None)
+        assert not [text for _, text in emu.drain_events() if "E-stop bit" in text]
+        emu.set_estop(True)
+        bus.bulk_cycle([1, 2], None)
+        assert [text for _, text in emu.drain_events() if "E-stop bit" in text] == [
+            "bear first reply with the E-stop bit sent"]
