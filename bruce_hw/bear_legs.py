@@ -281,12 +281,14 @@ class BearLegs:
         """The silence rule (`bruce_hw.leg_bus.silence`, with `stalled` the backend's joint_stalled_between, which
         leaves this port's held time out); but a port call the host held longer than safety.host_stall_max_s, or
         holds still, is a fault of its own: the motors held their last current that long."""
-        held = self.port_stalls.intervals(float(reading.stamps.min()), now)
-        worst = max((end - start for start, end in held), default=0.0)
-        if worst > self.host_stall_max_s:
-            return (f"the host held its port {1e3 * worst:.1f} ms (requests not sent, replies not handed over: the "
-                    f"kernel's tty work for the port not run) > safety.host_stall_max_s "
-                    f"{1e3 * self.host_stall_max_s:g} ms")
+        oldest = float(reading.stamps.min())
+        if now - oldest > self.host_stall_max_s:  # only then can a hold since the oldest sample be that long
+            held = self.port_stalls.intervals(oldest, now)
+            worst = max((end - start for start, end in held), default=0.0)
+            if worst > self.host_stall_max_s:
+                return (f"the host held its port {1e3 * worst:.1f} ms (requests not sent, replies not handed over: "
+                        f"the kernel's tty work for the port not run) > safety.host_stall_max_s "
+                        f"{1e3 * self.host_stall_max_s:g} ms")
         return silence(self.ids, reading, now, self.dt, self.max_age_s, stalled)
 
     def _held_since(self, now: float) -> float | None:

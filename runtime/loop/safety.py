@@ -116,12 +116,13 @@ class SafetyStage:
             return self.trip("non-finite joint reading (q or qd)")
         if not all_finite(imu.gyro, imu.accel):
             return self.trip("non-finite IMU reading")
-        sources = (("joint", joints.stamp, self.joint_stalled or self.stalled), ("IMU", imu.stamp, self.stalled))
-        for which, stamp, held in sorted(sources, key=lambda source: source[1]):  # the older named first
-            age = now - stamp
-            if age > self.max_age and age - held(stamp, now) > self.max_age:
-                return self.trip(f"stale {which} data: {1e3 * age:.1f} ms old > safety.max_sensor_age_s "
-                                 f"{1e3 * self.max_age:.1f} ms")
+        if now - min(joints.stamp, imu.stamp) > self.max_age:  # only then can either be stale
+            sources = (("joint", joints.stamp, self.joint_stalled or self.stalled), ("IMU", imu.stamp, self.stalled))
+            for which, stamp, held in sorted(sources, key=lambda source: source[1]):  # the older named first
+                age = now - stamp
+                if age > self.max_age and age - held(stamp, now) > self.max_age:
+                    return self.trip(f"stale {which} data: {1e3 * age:.1f} ms old > safety.max_sensor_age_s "
+                                     f"{1e3 * self.max_age:.1f} ms")
         if cos_tilt(imu) < self.cos_tilt_limit:
             self.tilted_ticks += 1
             if self.tilted_ticks >= self.tilt_ticks:
