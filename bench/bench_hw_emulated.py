@@ -27,9 +27,10 @@
     python bench/bench_hw_emulated.py --seconds 30 --cmd 0.4,0,0 --runs 3 --conditions clean,delay,drop,corrupt \
         --fault-trials 5 [--busy-core]
 
-Each run also reports the host stalls it counted itself (bruce_hw.host_witness), its late ticks split into those
-with the host stalled and those of the loop's own making, and the tick's CPU time as a share of the period (the
-loop's own cost, which a VM that does not run the thread does not advance).
+Each run also reports the host stalls it counted itself (bruce_hw.host_witness), its late ticks split three ways
+(with the host stalled; of the loop's own CPU time, which alone ran past the deadline; with the loop ready and not
+run: a higher-priority thread on its CPU, the GIL, a pause shorter than the witness sees), and the tick's CPU time as
+a share of the period (the loop's own cost, which a VM that does not run the thread does not advance).
 """
 
 from __future__ import annotations
@@ -140,7 +141,8 @@ def report(name: str, stats: dict, emulator: EmulatorProcess, no_delay: bool) ->
     print(f"     host stalls the run counted (its own witness, > 2 ms): {stalls.get('count', '?')}, worst "
           f"{stalls.get('worst_ms', float('nan')):.1f} ms, {stalls.get('total_ms', float('nan')):.0f} ms in all; late "
           f"ticks: {stats.get('late_ticks_machine', '?')} with the host stalled, {stats.get('late_ticks_loop', '?')} "
-          f"of the loop's own making ({100 * stats.get('late_share_loop', float('nan')):.2f} %)")
+          f"of the loop's own CPU time ({100 * stats.get('late_share_loop', float('nan')):.2f} %), "
+          f"{stats.get('late_ticks_not_run', '?')} with the loop ready and not run")
     shares = stats.get("cpu_share_of_period") or {}
     if shares:
         tick = shares["tick"]

@@ -174,6 +174,9 @@ class RobotConfig:
     buses: Buses
     raw: dict  # the YAML tree as read; the runtime reads its own `transfer` section from it (runtime/transfer/stage.py)
     estimator: EstimatorConfig = EstimatorConfig()
+    # Ticks from a policy tick's reading to its targets taking effect (runtime/control/controller_runner.py): 0, on
+    # that tick; >= 1, the controller runs beside the loop on a paced run and its targets are used that many ticks on.
+    policy_lag_ticks: int = 0
 
     @property
     def n_joints(self) -> int:
@@ -209,6 +212,8 @@ BOUNDS: dict[str, Bound] = {
     "rates.loop_hz": Bound(100, 10_000, "Hz", "PD/bus loop: slower destabilises the PD, no bus keeps up faster",
                            integer=True),
     "rates.policy_hz": Bound(1, 10_000, "Hz", "walking policy; must divide rates.loop_hz", integer=True),
+    "rates.policy_lag_ticks": Bound(0, 100, "ticks", "the policy's targets in force this many ticks after its reading; "
+                                    "less than rates.loop_hz / rates.policy_hz", integer=True),
     "joints.position_limits.*[*]": Bound(-_TURN, _TURN, "rad", "a turn either way"),
     "joints.torque_limits.*": Bound(0.0, 120.0, "N·m", "at most what the actuators reach at the joint",
                                     low_open=True),
@@ -530,10 +535,14 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
     r = YamlReader(path, data, ConfigError, bounds=bound_for)
     r.mapping("", _TOP_KEYS)
 
-    r.mapping("rates", {"loop_hz", "policy_hz"})
+    rates = r.mapping("rates", {"loop_hz", "policy_hz", "policy_lag_ticks"}, required=("loop_hz", "policy_hz"))
     loop_hz, policy_hz = r.number("rates.loop_hz"), r.number("rates.policy_hz")
     if loop_hz % policy_hz:
         raise r.fail("rates.policy_hz", f"a divisor of rates.loop_hz ({loop_hz})", policy_hz)
+    policy_lag = r.number("rates.policy_lag_ticks") if "policy_lag_ticks" in rates else 0
+    if policy_lag >= loop_hz // policy_hz:  # the targets must be in force before the next policy tick asks again
+        raise r.fail("rates.policy_lag_ticks", f"fewer ticks than one policy period ({loop_hz // policy_hz} ticks: "
+                     "rates.loop_hz / rates.policy_hz)", policy_lag)
 
     r.mapping("joints", {"names", "position_limits", "torque_limits", "velocity_limits", "standing_pose"})
     joints = r.names("joints.names")
@@ -587,6 +596,7 @@ def parse_config(data: Any, path: Path) -> RobotConfig:
         mjcf=_resolve_mjcf(path, r.string("mjcf"), "mjcf"),
         loop_hz=loop_hz,
         policy_hz=policy_hz,
+        policy_lag_ticks=policy_lag,
         joints=joints,
         q_lower=q_lower,
         q_upper=q_upper,

@@ -61,8 +61,13 @@ class LoopStats:
         self.ticks = 0
         self.loop_s = 0.0  # from the first tick's start to the last one's (the achieved rate is ticks / loop_s)
         self.late_ticks = 0
-        self._late = deque(maxlen=LATE_TICKS_KEPT)  # (monotonic s of the tick's start, s it was behind)
+        # (monotonic s of the tick's start, s it was behind, s the control thread's own CPU time alone would have
+        # made it late: None where not known)
+        self._late = deque(maxlen=LATE_TICKS_KEPT)
+        self.late_after_s = 0.0  # a tick this far past its deadline is late (the pacer's bound)
         self.late_machine: int | None = None  # late ticks with a host stall in them (None: not attributed)
+        self.late_own: int | None = None      # late ticks the loop's own CPU time made late
+        self.late_not_run = 0                 # the rest: the control thread ready and not run
         self.skipped_ticks = 0
         self._worst: list[int] = []  # min-heap of the largest lateness values (ns)
 
@@ -80,25 +85,38 @@ class LoopStats:
             write.add(m7 - m6)
             telemetry.add(m8 - m7)
 
-    def overrun(self, behind_ns: int, at_s: float | None = None) -> None:
-        """A late tick, `behind_ns` past its deadline, started at monotonic `at_s`."""
+    def overrun(self, behind_ns: int, at_s: float | None = None, own_ns: int | None = None) -> None:
+        """A late tick, `behind_ns` past its deadline, started at monotonic `at_s`; `own_ns`: how far past it the
+        control thread's own CPU time since the previous tick's start would have taken it, had the thread run
+        without a pause (the previous tick's start + that CPU time - the deadline)."""
         if at_s is not None:
-            self._late.append((at_s, behind_ns / 1e9))
+            self._late.append((at_s, behind_ns / 1e9, None if own_ns is None else own_ns / 1e9))
         if len(self._worst) < WORST_OVERRUNS_KEPT:
             heapq.heappush(self._worst, behind_ns)
         elif behind_ns > self._worst[0]:
             heapq.heapreplace(self._worst, behind_ns)
 
-    def attribute(self, stalled_between) -> None:
-        """Split the late ticks into the machine's (the process was not run in the period before the tick started:
-        `stalled_between(t0, t1)`, the host witness) and the loop's own (work that ran long)."""
+    def attribute(self, stalled_between=None) -> None:
+        """Split the late ticks three ways: the machine's (the process was not run in the period before the tick
+        started: `stalled_between(t0, t1)`, the host witness; None: no witness), the loop's own (its CPU time since
+        the previous tick's start alone ran past the deadline by more than `late_after_s`), and the rest: the control
+        thread was ready and not run (a higher-priority thread on its CPU, the GIL held by another thread, a wake-up
+        or a pause of the virtual CPU shorter than the witness sees)."""
         period = self.period_s or 0.0
-        self.late_machine = sum(stalled_between(at - behind - period, at) > 0.0 for at, behind in self._late)
+        machine = own = 0
+        for at, behind, own_s in self._late:
+            if stalled_between is not None and stalled_between(at - behind - period, at) > 0.0:
+                machine += 1
+            elif own_s is None or own_s > self.late_after_s:
+                own += 1
+        self.late_machine, self.late_own = machine, own
+        self.late_not_run = self.late_ticks - machine - own
 
     def to_json(self) -> dict:
-        attributed = {} if self.late_machine is None else {
-            "late_ticks_machine": self.late_machine, "late_ticks_loop": self.late_ticks - self.late_machine,
-            "late_share_loop": (self.late_ticks - self.late_machine) / self.ticks if self.ticks else 0.0}
+        attributed = {} if self.late_own is None else {
+            "late_ticks_machine": self.late_machine, "late_ticks_loop": self.late_own,
+            "late_ticks_not_run": self.late_not_run,
+            "late_share_loop": self.late_own / self.ticks if self.ticks else 0.0}
         return {**attributed,
             "ticks": self.ticks,
             "late_ticks": self.late_ticks,
@@ -145,8 +163,9 @@ class LoopStats:
         lines = [f"  loop: {rate}work p50 {us(work['p50'])} / p99 {us(work['p99'])} / max {us(work['max'])} µs, period "
                  f"p50 {us(period['p50'])} / p99 {us(period['p99'])} / max {us(period['max'])} µs, late "
                  f"{self.late_ticks} ({100 * j['late_share']:.3f} %"
-                 + ("" if self.late_machine is None else
-                    f": {self.late_machine} with the host stalled, {j['late_ticks_loop']} of the loop's own making")
+                 + ("" if self.late_own is None else
+                    f": {self.late_machine} with the host stalled, {self.late_own} of the loop's own CPU time, "
+                    f"{self.late_not_run} with the loop ready and not run")
                  + f"), skipped {self.skipped_ticks}",
                  f"  tick CPU time p50 {us(j['cpu_us']['p50'])} / p99 {us(j['cpu_us']['p99'])} / p99.9 "
                  f"{us(j['cpu_us']['p99.9'])} µs",

@@ -12,10 +12,15 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
+import threading
+import weakref
 from dataclasses import dataclass, field
 
 FIFO_PRIORITY = 50
 _MCL_CURRENT, _MCL_FUTURE = 1, 2
+# While a grant holds: (the loop's CPU, the CPUs the process had before), for the threads started beside the loop.
+_loop_cpu: tuple[int, list[int]] | None = None
+_beside: weakref.WeakSet[threading.Thread] = weakref.WeakSet()
 
 
 @dataclass
@@ -41,6 +46,8 @@ class RealtimeGrant:
 
     def release(self) -> None:
         """Undo what was granted (the calling thread's scheduler and affinity, the memory lock)."""
+        global _loop_cpu
+        _loop_cpu = None
         while self._restore:
             try:
                 self._restore.pop()()
@@ -72,6 +79,8 @@ def request_realtime(priority: int = FIFO_PRIORITY, cpu: int | None = None, lock
         try:
             os.sched_setaffinity(0, {target})
             grant.cpu = target
+            global _loop_cpu
+            _loop_cpu = (target, allowed)
             grant._restore.append(lambda: os.sched_setaffinity(0, allowed))
         except OSError as exc:
             grant.refused.append(f"affinity to CPU {target}: {exc.strerror}")
@@ -87,3 +96,33 @@ def request_realtime(priority: int = FIFO_PRIORITY, cpu: int | None = None, lock
         except OSError as exc:
             grant.refused.append(f"mlockall: {exc}")
     return grant
+
+
+def start_beside_the_loop(name: str, target, *args) -> threading.Thread:
+    """Start a thread that computes beside the loop (the nominal controller, the nominal twin): it runs at normal
+    priority on the CPUs the process may use but the loop's, however late it is started (a thread started by the
+    loop's thread inherits its SCHED_FIFO and its one CPU), and `helper_threads` leaves it out, so it is never put
+    above the loop."""
+
+    def run() -> None:
+        held = _loop_cpu
+        if held is not None and hasattr(os, "sched_setscheduler"):
+            cpu, allowed = held
+            try:
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+                os.sched_setaffinity(0, [c for c in allowed if c != cpu] or allowed)
+            except OSError:  # keeps what it inherited; the loop's grant is reported on its own
+                pass
+        target(*args)
+
+    thread = threading.Thread(target=run, name=name, daemon=True)
+    _beside.add(thread)
+    thread.start()
+    return thread
+
+
+def helper_threads() -> list[threading.Thread]:
+    """The process's other threads that serve the loop's I/O (bus threads, telemetry, the log relay): all but the
+    calling thread and those started beside the loop."""
+    me = threading.current_thread()
+    return [t for t in threading.enumerate() if t is not me and t not in _beside]

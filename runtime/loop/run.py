@@ -23,7 +23,6 @@ import logging
 import math
 import queue
 import sys
-import threading
 import time
 from dataclasses import asdict, dataclass, field
 from logging.handlers import QueueHandler, QueueListener
@@ -33,8 +32,10 @@ import numpy as np
 
 from bruce_hw.backend import Backend, BackendError, LifecycleState
 from bruce_hw.config import RobotConfig
+from bruce_hw.hw import GIL_SWITCH_INTERVAL_S
 from bruce_hw.io_priority import above_the_caller
 from bruce_hw.types import JointCommand, RobotState
+from runtime.control.controller_runner import InlineControllerRunner, make_controller_runner
 from runtime.control.controllers import build_controller
 from runtime.control.inference import ModelError, OnnxPinn
 from runtime.control.mixing import eq8_torque
@@ -45,7 +46,7 @@ from runtime.loop.falls import FALL_TILT_RAD
 from runtime.loop.loopstats import LoopStats
 from runtime.loop.observers import GroundTruthLog, TickObserver, TickView, ground_truth_observers
 from runtime.loop.pacing import Pacer
-from runtime.loop.realtime import RealtimeGrant, request_realtime
+from runtime.loop.realtime import RealtimeGrant, helper_threads, request_realtime
 from runtime.loop.safety import SafetyStage, SafetyState
 from runtime.transfer.gap_monitor import GapMonitor
 from runtime.transfer.interface import TransferScheme
@@ -84,6 +85,7 @@ class RunSummary:
     gap: GapMonitor | None = None    # the live gap monitor, with a transfer scheme that has a reference model
     robot_faithful: bool = True      # the control path saw only what a robot measures (not the simulator's truth)
     scheme_report: dict = field(default_factory=dict)  # the transfer scheme's own figures (TransferScheme.report)
+    controller: dict | None = None   # where the nominal controller ran and what it cost (controller_runner.report)
 
     def end(self, code: ExitCode, cause: str | None = None) -> None:
         """Record how the run ended (the first fault wins)."""
@@ -123,6 +125,14 @@ class RunSummary:
             if t.tracking.samples:
                 lines.append(t.tracking.text())
         lines.append(self.loop.text())
+        runner = self.controller
+        if runner and runner["lag_ticks"]:
+            cpu = runner["cpu_us"] or {}
+            inside = "in" if runner["runs_on"] == InlineControllerRunner.where else "not in"
+            lines.append(f"  controller: on {runner['runs_on']}, its targets {runner['lag_ticks']} tick(s) after its "
+                         f"reading; {runner['calls']} calls, CPU p50 {cpu.get('p50') or 0:.0f} / p99 "
+                         f"{cpu.get('p99') or 0:.0f} µs each ({inside} the tick's); {runner['late_ticks']} ticks "
+                         f"waited for targets due (worst {runner['worst_late_ticks']} ticks late)")
         legs = (self.link or {}).get("legs", {})
         if "replies_lost" in legs:
             lost = {i: n for i, n in legs["replies_lost"].items() if n}
@@ -309,6 +319,8 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
     grant: RealtimeGrant | None = None
     telemetry = None
     scheme: TransferScheme | None = None
+    runner = None
+    switch_interval: float | None = None
     activating = False  # from here on a motor may be enabled: a failure must end in damping
     try:
         stop.arm()
@@ -340,6 +352,7 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
             controller, controller_name = build_controller(config, policy, controller_kind)
         else:
             controller_name = type(controller).__name__
+        runner = make_controller_runner(controller, config.policy_lag_ticks, paced=realtime)
         if rerun is not None:
             from runtime.telemetry import make_telemetry  # rerun-sdk loads only when telemetry is on
 
@@ -349,6 +362,10 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
             telemetry.start()  # its threads start before the loop thread asks for real-time scheduling
         if realtime:
             grant = summary.realtime_grant = request_realtime()
+            # The threads beside the loop (the controller's, the twin's) hold the GIL through their Python; the
+            # control thread waits at most the switch interval for it (CPython's default, 5 ms, is five ticks).
+            switch_interval = sys.getswitchinterval()
+            sys.setswitchinterval(min(switch_interval, GIL_SWITCH_INTERVAL_S))
         # Collect before the motors are enabled: in a large process a full collection takes up to a second, and
         # an enabled robot would stand that long on its last (zero) command.
         gc.collect()
@@ -359,12 +376,14 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         if stop.cause is not None:  # came while `abort` was being cleared
             raise StopRequested(f"{stop.cause} received")
         controller.reset(robot.joints.q)
+        runner.reset()
+        runner.start()  # before the loop, as the twin's: a thread's first start costs the tick that makes it
         estimator.reset(robot)
         scheme.reset()
         activating = True
         backend.activate()  # the last step before the loop: the first tick's reading is as fresh as it can be
         if grant is not None and grant.scheduler.startswith("SCHED_FIFO"):
-            others = [t for t in threading.enumerate() if t is not threading.current_thread()]
+            others = helper_threads()
             priority, restore = above_the_caller(others)
             grant._restore.insert(0, restore)  # undone last: after the loop thread's own scheduling
             grant.helpers = f"{len(others)} other threads at SCHED_FIFO {priority}" if priority else None
@@ -375,8 +394,8 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         if grant is not None:
             print(f"bruce-run: {grant.text()}", flush=True)
         gc.disable()
-        _loop(backend, config, controller, estimator, commands, scheme, telemetry, summary, stop, duration,
-              realtime, tuple(watching), sealed)
+        _loop(backend, config, runner, robot.joints.q, estimator, commands, scheme, telemetry, summary, stop,
+              duration, realtime, tuple(watching), sealed)
         summary.final_state = backend.state.value
         if backend.state is LifecycleState.FAULT:
             summary.final_state = f"{backend.state.value}: damping"
@@ -400,11 +419,16 @@ def run_session(backend: Backend, config: RobotConfig, *, duration: float | None
         summary.wall_time = time.perf_counter() - wall_start
         backend.truth_sealed = False
         try:
+            if runner is not None:
+                runner.close()
+                summary.controller = runner.report()
             if scheme is not None:
                 scheme.close()
                 summary.scheme_report = scheme.report()
             if grant is not None:
                 grant.release()
+            if switch_interval is not None:
+                sys.setswitchinterval(switch_interval)
             if telemetry is not None:
                 telemetry.close()
                 summary.telemetry_dropped = telemetry.dropped
@@ -424,10 +448,13 @@ def _settle(backend: Backend, summary: RunSummary) -> None:
         else backend.state.value
 
 
-def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimator, commands, scheme: TransferScheme,
-          telemetry, summary: RunSummary, stop: StopFlag, duration: float | None, realtime: bool,
-          observers: tuple[TickObserver, ...] = (), sealed: bool = False) -> None:
-    """The ticks. `sealed`: the backend's truth is sealed, and opened only while the observers run."""
+def _loop(backend: Backend, config: RobotConfig, runner: InlineControllerRunner, start_pose: np.ndarray,
+          estimator: Estimator, commands, scheme: TransferScheme, telemetry, summary: RunSummary, stop: StopFlag,
+          duration: float | None, realtime: bool, observers: tuple[TickObserver, ...] = (),
+          sealed: bool = False) -> None:
+    """The ticks. `runner` runs the nominal controller; until its first targets are in force (`rates.policy_lag_ticks`
+    > 0) the targets are `start_pose`, the pose it was reset to. `sealed`: the backend's truth is sealed, and opened
+    only while the observers run."""
     stats = summary.loop  # each section timed on the wall clock and on the thread's CPU clock (the loop's own cost)
     stats.period_s = config.dt
     safety = SafetyStage(config, stalled=backend.stalled_between, joint_stalled=backend.joint_stalled_between)
@@ -454,9 +481,11 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
     cpu = time.thread_time_ns  # the control thread's own CPU clock (stats.cpu)
     pacer = Pacer(config.dt)
     late_ns = pacer.late_ns
+    stats.late_after_s = late_ns / 1e9
     pacer.start()
     tick, previous_start, first_start = 0, 0, 0
-    a = None
+    c0 = 0
+    a = np.array(start_pose, dtype=np.float64)
     residual = None  # the gap monitor's residual this tick (None: no monitor, or no prediction to score)
     observer_stop = None
     standstill = np.zeros(3)
@@ -467,7 +496,9 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
             if realtime:
                 behind = pacer.wait()
                 if behind > late_ns:
-                    stats.overrun(behind, time.monotonic())
+                    woke, spent = perf(), cpu() - c0  # perf_counter: CLOCK_MONOTONIC, the pacer's clock
+                    own = previous_start + spent - (woke - behind) if tick else None
+                    stats.overrun(behind, time.monotonic(), own)
             c0 = cpu()
             t0 = perf()
             robot = backend.read()
@@ -485,17 +516,20 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
             if period_now != policy_period:
                 policy_period = period_now
                 command = scheme.steer(standstill if commands is None else commands.at(now - clock0))
-                try:
-                    a = controller(robot, estimator.estimate(), command)
-                except ModelError as exc:
-                    safety.trip(str(exc))
-                    break
-                i = first_outside(a, a_low, a_high)
+                runner.post(tick, robot, estimator.estimate(), command)
+            try:
+                targets = runner.targets(tick)
+            except ModelError as exc:
+                safety.trip(str(exc))
+                break
+            if targets is not None:
+                i = first_outside(targets, a_low, a_high)
                 if i is not None:
-                    safety.trip(f"controller target {a[i]:.4g} rad for {config.joints[i]} outside "
+                    safety.trip(f"controller target {targets[i]:.4g} rad for {config.joints[i]} outside "
                                 f"[{a_low[i]:.3g}, {a_high[i]:.3g}] (asks more than {TARGET_TORQUE_MULTIPLE:g} x "
                                 "its torque limit)")
                     break
+                a = targets
             t2, c2 = perf(), cpu()
             tau_star = eq8_torque(a, q, qd, eq8)
             t3, c3 = perf(), cpu()
@@ -554,8 +588,8 @@ def _loop(backend: Backend, config: RobotConfig, controller, estimator: Estimato
                 break
     finally:  # a backend error raised from read() still leaves correct counters
         stats.late_ticks, stats.skipped_ticks = pacer.late_ticks, pacer.skipped_ticks
-        if realtime and backend.host_witness:  # late ticks attributed to the machine or the loop
-            stats.attribute(backend.stalled_between)
+        if realtime:  # late ticks attributed to the machine, the loop's own CPU time, or the loop not run
+            stats.attribute(backend.stalled_between if backend.host_witness else None)
         if tick > 1:
             stats.loop_s = (previous_start - first_start) / 1e9
         backend.truth_sealed = False  # the evaluation after the loop reads it; the damping hold does not

@@ -25,6 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from runtime.control.inference import ModelError
+from runtime.loop.realtime import start_beside_the_loop
 from runtime.transfer.nominal_twin import NominalTwin, TwinInput
 
 MAX_BACKLOG_TICKS = 200  # 0.2 s: beyond it the twin's offsets are too old to integrate on a 2 s time constant
@@ -202,9 +203,7 @@ class ThreadTwinRunner(InlineTwinRunner):
     def start(self) -> None:
         if self._thread is None:
             self._inputs = queue.SimpleQueue()
-            self._thread = threading.Thread(target=self._work, args=(self._inputs,), name="nominal-twin",
-                                            daemon=True)
-            self._thread.start()
+            self._thread = start_beside_the_loop("nominal-twin", self._work, self._inputs)
 
     def close(self) -> None:
         if self._thread is not None:

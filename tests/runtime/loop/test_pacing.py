@@ -84,3 +84,25 @@ def test_at_normal_priority_a_late_tick_runs_at_once(clock, monkeypatch):
     clock.sleeps_ns.clear()
     assert pacer.wait() == 600_000
     assert clock.sleeps_ns == [] and pacer.late_ticks == 1 and pacer.skipped_ticks == 0
+
+
+def test_late_ticks_are_split_into_the_machine_s_the_loop_s_own_and_the_loop_not_run():
+    """A late tick with a host stall in the period before it is the machine's; one whose own CPU time since the
+    previous tick's start alone ran past the deadline by more than the late bound is the loop's; the rest had the
+    loop ready and not run."""
+    from runtime.loop.loopstats import LoopStats
+
+    stats = LoopStats()
+    stats.period_s, stats.late_after_s = 1e-3, 250e-6
+    stats.overrun(3_000_000, at_s=10.0, own_ns=100_000)    # a stall covers it: the machine's, whatever the CPU
+    stats.overrun(600_000, at_s=20.0, own_ns=400_000)      # 400 µs past on its own CPU time alone: the loop's
+    stats.overrun(600_000, at_s=30.0, own_ns=200_000)      # its CPU alone would have been 200 µs late: not run
+    stats.overrun(300_000, at_s=40.0, own_ns=-500_000)     # woke late from its sleep: not run
+    stats.late_ticks, stats.ticks = 4, 1000
+    stats.attribute(lambda t0, t1: 0.003 if t0 <= 10.0 <= t1 + 0.001 and t1 <= 10.0 else 0.0)
+    j = stats.to_json()
+    assert (j["late_ticks_machine"], j["late_ticks_loop"], j["late_ticks_not_run"]) == (1, 1, 2)
+    assert j["late_share_loop"] == pytest.approx(0.001)
+    assert "1 with the host stalled, 1 of the loop's own CPU time, 2 with the loop ready and not run" in stats.text()
+    stats.attribute(None)  # no witness (the paced mock): nothing is the machine's
+    assert (stats.late_machine, stats.late_own, stats.late_not_run) == (0, 1, 3)
