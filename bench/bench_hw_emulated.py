@@ -150,6 +150,12 @@ def report(name: str, stats: dict, emulator: EmulatorProcess, no_delay: bool) ->
         print(f"     tick CPU time, share of the period: p50 {100 * tick['p50']:.0f} / p99 {100 * tick['p99']:.0f} / "
               f"p99.9 {100 * tick['p99.9']:.0f} %; the largest section at p99: {worst} "
               f"{100 * shares[worst]['p99']:.0f} %")
+    runner = stats.get("controller") or {}
+    if runner.get("lag_ticks"):
+        cpu = runner.get("cpu_us") or {}
+        print(f"     controller on {runner['runs_on']}, its targets {runner['lag_ticks']} tick(s) after its reading: "
+              f"CPU p50/p99 {cpu.get('p50') or 0:.0f}/{cpu.get('p99') or 0:.0f} µs a call; {runner['late_ticks']} "
+              f"ticks waited for targets due, worst {runner['worst_late_ticks']} ticks late")
     seen = stats["witness"]
     longest = max((ms for _, ms in seen["stalls"]), default=0.0)
     print(f"     machine stalls seen by the witness (SCHED_FIFO 90 on every CPU, > 2 ms): {len(seen['stalls'])}, "

@@ -81,7 +81,7 @@ class InlineControllerRunner:
     def _run(self, state: RobotState, base: BaseEstimate, command: np.ndarray) -> np.ndarray | BaseException:
         start = time.thread_time_ns()
         try:
-            a = np.asarray(self.controller(state, base, command), dtype=np.float64)
+            a = np.array(self.controller(state, base, command), dtype=np.float64)  # its own: the loop keeps it
         except ModelError as exc:  # raised on the control thread at the tick it was due
             a = exc
         self.cpu.add(time.thread_time_ns() - start)
