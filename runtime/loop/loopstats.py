@@ -87,8 +87,8 @@ class LoopStats:
 
     def overrun(self, behind_ns: int, at_s: float | None = None, own_ns: int | None = None) -> None:
         """A late tick, `behind_ns` past its deadline, started at monotonic `at_s`; `own_ns`: how far past it the
-        control thread's own CPU time since the previous tick's start would have taken it, had the thread run
-        without a pause (the previous tick's start + that CPU time - the deadline)."""
+        control thread's own CPU time since the previous tick's start would have taken it, had that tick started on
+        time and run without a pause (that CPU time less one period)."""
         if at_s is not None:
             self._late.append((at_s, behind_ns / 1e9, None if own_ns is None else own_ns / 1e9))
         if len(self._worst) < WORST_OVERRUNS_KEPT:
@@ -99,9 +99,10 @@ class LoopStats:
     def attribute(self, stalled_between=None) -> None:
         """Split the late ticks three ways: the machine's (the process was not run in the period before the tick
         started: `stalled_between(t0, t1)`, the host witness; None: no witness), the loop's own (its CPU time since
-        the previous tick's start alone ran past the deadline by more than `late_after_s`), and the rest: the control
-        thread was ready and not run (a higher-priority thread on its CPU, the GIL held by another thread, a wake-up
-        or a pause of the virtual CPU shorter than the witness sees)."""
+        the previous tick's start alone, from an on-time start, ran past the deadline by more than `late_after_s`),
+        and the rest: the control thread was ready and not run (a higher-priority thread on its CPU, the GIL held by
+        another thread, a wake-up or a pause of the virtual CPU shorter than the witness sees), or inherited the
+        lateness of a tick that started late."""
         period = self.period_s or 0.0
         machine = own = 0
         for at, behind, own_s in self._late:

@@ -496,9 +496,10 @@ def _loop(backend: Backend, config: RobotConfig, runner: InlineControllerRunner,
             if realtime:
                 behind = pacer.wait()
                 if behind > late_ns:
-                    woke, spent = perf(), cpu() - c0  # perf_counter: CLOCK_MONOTONIC, the pacer's clock
-                    own = previous_start + spent - (woke - behind) if tick else None
-                    stats.overrun(behind, time.monotonic(), own)
+                    # The loop's own share: its CPU time since the previous tick's start beyond one period (late
+                    # even had that tick started on time and run without a pause); lateness it inherited from a
+                    # late start is not its own.
+                    stats.overrun(behind, time.monotonic(), cpu() - c0 - pacer.period_ns if tick else None)
             c0 = cpu()
             t0 = perf()
             robot = backend.read()
