@@ -30,7 +30,8 @@
 Each run also reports the host stalls it counted itself (bruce_hw.host_witness), its late ticks split three ways
 (with the host stalled; of the loop's own CPU time, which alone ran past the deadline from an on-time start; with
 the loop ready and not run: a higher-priority thread on its CPU, the GIL, a pause shorter than the witness sees, or a
-late start inherited), and the tick's CPU time as a share of the period (the loop's own cost, which a VM that does not run the thread does not advance).
+late start inherited), and the tick's CPU time as a share of the period (the loop's own cost, which a VM that does
+not run the thread does not advance).
 """
 
 from __future__ import annotations

@@ -30,7 +30,7 @@ from bruce_hw.types import FootContacts, ImuSample, JointState, RobotState
 from runtime.control.inference import ModelError
 from runtime.estimation import BaseEstimate
 from runtime.loop.loopstats import Histogram
-from runtime.loop.realtime import start_beside_the_loop
+from runtime.loop.realtime import QueueWorker
 
 
 @dataclass(slots=True)
@@ -113,9 +113,8 @@ class ThreadControllerRunner(InlineControllerRunner):
             raise ValueError("a controller on its own thread needs rates.policy_lag_ticks >= 1 (its targets cannot "
                              "be used on the tick that asked for them without waiting for them)")
         self.wait = wait
-        self._inputs: queue.SimpleQueue = queue.SimpleQueue()
+        self._worker = QueueWorker("nominal-controller", self._work)
         self._done = threading.Condition()
-        self._thread: threading.Thread | None = None
         self._posted: list[int] = []  # due ticks posted and not yet handed out, oldest first (control thread only)
         super().__init__(controller, lag_ticks)
 
@@ -125,21 +124,16 @@ class ThreadControllerRunner(InlineControllerRunner):
         self._posted = []
 
     def start(self) -> None:
-        """Start the thread (before the control thread asks for real-time scheduling: it must not inherit it)."""
-        if self._thread is None:
-            self._inputs = queue.SimpleQueue()
-            self._thread = start_beside_the_loop("nominal-controller", self._work, self._inputs)
+        """Start the thread, beside the loop (`runtime.loop.realtime.start_beside_the_loop`)."""
+        self._worker.start()
 
     def close(self) -> None:
-        if self._thread is not None:
-            self._inputs.put(None)
-            self._thread.join(timeout=2.0)
-            self._thread = None
+        self._worker.close()
 
     def post(self, tick: int, state: RobotState, base: BaseEstimate, command: np.ndarray) -> None:
         self.start()
         self._posted.append(tick + self.lag)
-        self._inputs.put(_Pending(tick + self.lag, snapshot(state), base, np.array(command, dtype=np.float64)))
+        self._worker.put(_Pending(tick + self.lag, snapshot(state), base, np.array(command, dtype=np.float64)))
 
     def _work(self, inputs: queue.SimpleQueue) -> None:
         while (pending := inputs.get()) is not None:

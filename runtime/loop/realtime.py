@@ -12,6 +12,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
+import queue
 import threading
 import weakref
 from dataclasses import dataclass, field
@@ -119,6 +120,30 @@ def start_beside_the_loop(name: str, target, *args) -> threading.Thread:
     _beside.add(thread)
     thread.start()
     return thread
+
+
+class QueueWorker:
+    """A thread beside the loop fed through a queue (the nominal controller's, the nominal twin's): `start` (once;
+    again after `close`), `put` an item, `close` (the worker's `work(queue)` returns when it takes None; joined)."""
+
+    def __init__(self, name: str, work):
+        self.name, self._work = name, work
+        self._inputs: queue.SimpleQueue = queue.SimpleQueue()
+        self.thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        if self.thread is None:
+            self._inputs = queue.SimpleQueue()  # a fresh one: nothing of a closed worker's is left in it
+            self.thread = start_beside_the_loop(self.name, self._work, self._inputs)
+
+    def put(self, item) -> None:
+        self._inputs.put(item)
+
+    def close(self) -> None:
+        if self.thread is not None:
+            self._inputs.put(None)
+            self.thread.join(timeout=2.0)
+            self.thread = None
 
 
 def helper_threads() -> list[threading.Thread]:

@@ -25,7 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from runtime.control.inference import ModelError
-from runtime.loop.realtime import start_beside_the_loop
+from runtime.loop.realtime import QueueWorker
 from runtime.transfer.nominal_twin import NominalTwin, TwinInput
 
 MAX_BACKLOG_TICKS = 200  # 0.2 s: beyond it the twin's offsets are too old to integrate on a 2 s time constant
@@ -189,9 +189,8 @@ class ThreadTwinRunner(InlineTwinRunner):
 
     def __init__(self, integral: TwinIntegral, lag_ticks: int, wait: bool = False):
         self.wait = wait
-        self._inputs: queue.SimpleQueue = queue.SimpleQueue()
+        self._worker = QueueWorker("nominal-twin", self._work)
         self._stepped = threading.Condition()
-        self._thread: threading.Thread | None = None
         self.error: BaseException | None = None
         super().__init__(integral, lag_ticks)
 
@@ -201,22 +200,17 @@ class ThreadTwinRunner(InlineTwinRunner):
         super().reset()
 
     def start(self) -> None:
-        if self._thread is None:
-            self._inputs = queue.SimpleQueue()
-            self._thread = start_beside_the_loop("nominal-twin", self._work, self._inputs)
+        self._worker.start()
 
     def close(self) -> None:
-        if self._thread is not None:
-            self._inputs.put(None)
-            self._thread.join(timeout=2.0)
-            self._thread = None
+        self._worker.close()
 
     def post(self, step: TwinInput) -> None:
         if self.error is not None:
             raise ModelError(f"nominal twin: {type(self.error).__name__}: {self.error}")
         self.start()
         self.posted = step.tick
-        self._inputs.put(step)
+        self._worker.put(step)
 
     def _work(self, inputs: queue.SimpleQueue) -> None:
         while (step := inputs.get()) is not None:
