@@ -103,8 +103,20 @@ def test_a_threaded_runner_told_to_wait_reproduces_the_inline_one_bit_for_bit():
         ThreadControllerRunner(Echo(), 0)
 
 
+class Held(Echo):
+    """A controller that answers only once `release` is set: a result that is late for as long as a test says."""
+
+    def __init__(self):
+        super().__init__()
+        self.release = threading.Event()
+
+    def __call__(self, state, base, command):
+        self.release.wait(5.0)
+        return super().__call__(state, base, command)
+
+
 def test_targets_not_back_by_their_tick_leave_the_ones_in_force_and_are_used_when_they_come():
-    controller = Echo(delay_s=0.05)
+    controller = Held()
     runner = ThreadControllerRunner(controller, 1)
     runner.reset()
     runner.start()
@@ -113,6 +125,7 @@ def test_targets_not_back_by_their_tick_leave_the_ones_in_force_and_are_used_whe
         assert runner.targets(0) is None    # not due yet
         assert runner.targets(1) is None    # due, still computing: the loop keeps what it has
         assert runner.targets(2) is None
+        controller.release.set()
         deadline = time.monotonic() + 5.0
         targets = None
         tick = 3
