@@ -19,8 +19,12 @@ from dataclasses import dataclass, field
 
 FIFO_PRIORITY = 50
 _MCL_CURRENT, _MCL_FUTURE = 1, 2
-# While a grant holds: (the loop's CPU, the CPUs the process had before), for the threads started beside the loop.
-_loop_cpu: tuple[int, list[int]] | None = None
+# A thread beside the loop runs this many real-time priority steps below the loop: below its I/O threads and the
+# loop, above whatever a computer runs at normal priority and lower real-time ones (the emulated devices' 40 here).
+BESIDE_PRIORITY_STEPS = 5
+# While a grant holds: (the loop's CPU, the CPUs the process had before, the loop's SCHED_FIFO priority or None), for
+# the threads started beside the loop.
+_loop_cpu: tuple[int, list[int], int | None] | None = None
 _beside: weakref.WeakSet[threading.Thread] = weakref.WeakSet()
 
 
@@ -81,7 +85,7 @@ def request_realtime(priority: int = FIFO_PRIORITY, cpu: int | None = None, lock
             os.sched_setaffinity(0, {target})
             grant.cpu = target
             global _loop_cpu
-            _loop_cpu = (target, allowed)
+            _loop_cpu = (target, allowed, priority if grant.scheduler.startswith("SCHED_FIFO") else None)
             grant._restore.append(lambda: os.sched_setaffinity(0, allowed))
         except OSError as exc:
             grant.refused.append(f"affinity to CPU {target}: {exc.strerror}")
@@ -100,18 +104,24 @@ def request_realtime(priority: int = FIFO_PRIORITY, cpu: int | None = None, lock
 
 
 def start_beside_the_loop(name: str, target, *args) -> threading.Thread:
-    """Start a thread that computes beside the loop (the nominal controller, the nominal twin): it runs at normal
-    priority on the CPUs the process may use but the loop's, however late it is started (a thread started by the
-    loop's thread inherits its SCHED_FIFO and its one CPU), and `helper_threads` leaves it out, so it is never put
-    above the loop."""
+    """Start a thread that computes beside the loop (the nominal controller, the nominal twin): on the CPUs the
+    process may use but the loop's, `BESIDE_PRIORITY_STEPS` real-time priorities below the loop (at normal priority
+    where the loop has none), however late it is started (a thread started by the loop's thread inherits its
+    SCHED_FIFO and its one CPU); `helper_threads` leaves it out, so it is never put above the loop. Real-time, because
+    the GIL does not inherit priority: a thread that holds it and is preempted by lesser work keeps every thread of
+    the process waiting, the loop's too (docs/timing.md, "The policy beside the loop")."""
 
     def run() -> None:
         held = _loop_cpu
         if held is not None and hasattr(os, "sched_setscheduler"):
-            cpu, allowed = held
+            cpu, allowed, priority = held
             try:
-                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
                 os.sched_setaffinity(0, [c for c in allowed if c != cpu] or allowed)
+                if priority is None:
+                    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+                else:
+                    os.sched_setscheduler(0, os.SCHED_FIFO,
+                                          os.sched_param(max(1, priority - BESIDE_PRIORITY_STEPS)))
             except OSError:  # keeps what it inherited; the loop's grant is reported on its own
                 pass
         target(*args)

@@ -182,12 +182,13 @@ def test_a_thread_beside_the_loop_leaves_the_loop_cpu_and_is_not_put_above_the_l
     if not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2:
         pytest.skip("needs Linux affinity and two CPUs")
     allowed = sorted(os.sched_getaffinity(0))
-    monkeypatch.setattr(realtime, "_loop_cpu", (allowed[-1], allowed))  # as while a grant holds
+    monkeypatch.setattr(realtime, "_loop_cpu", (allowed[-1], allowed, 50))  # as while a grant of SCHED_FIFO 50 holds
     seen = {}
     release = threading.Event()
 
     def work():
         seen["cpus"] = os.sched_getaffinity(0)
+        seen["policy"], seen["priority"] = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
         release.wait(5.0)
 
     thread = realtime.start_beside_the_loop("beside-test", work)
@@ -196,11 +197,23 @@ def test_a_thread_beside_the_loop_leaves_the_loop_cpu_and_is_not_put_above_the_l
         while "cpus" not in seen and time.monotonic() < deadline:
             time.sleep(0.001)
         assert seen["cpus"] == set(allowed[:-1])
+        if _may_use_fifo():  # below the loop and its I/O threads, above normal work
+            assert (seen["policy"], seen["priority"]) == (os.SCHED_FIFO, 50 - realtime.BESIDE_PRIORITY_STEPS)
         assert thread not in realtime.helper_threads()
         assert threading.current_thread() not in realtime.helper_threads()
     finally:
         release.set()
         thread.join(5.0)
+
+
+def _may_use_fifo() -> bool:
+    try:
+        previous = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except (AttributeError, OSError):
+        return False
+    os.sched_setscheduler(0, previous[0], previous[1])
+    return True
 
 
 def test_the_policy_lag_must_be_shorter_than_a_policy_period():
