@@ -104,7 +104,7 @@ def request_realtime(priority: int = FIFO_PRIORITY, cpu: int | None = None, lock
 
 
 def start_beside_the_loop(name: str, target, *args) -> threading.Thread:
-    """Start a thread that computes beside the loop (the nominal controller, the nominal twin): on the CPUs the
+    """Start a thread that computes beside the loop (the nominal controller's with a policy lag): on the CPUs the
     process may use but the loop's, `BESIDE_PRIORITY_STEPS` real-time priorities below the loop (at normal priority
     where the loop has none), however late it is started (a thread started by the loop's thread inherits its
     SCHED_FIFO and its one CPU); `helper_threads` leaves it out, so it is never put above the loop. Real-time, because
@@ -133,18 +133,24 @@ def start_beside_the_loop(name: str, target, *args) -> threading.Thread:
 
 
 class QueueWorker:
-    """A thread beside the loop fed through a queue (the nominal controller's, the nominal twin's): `start` (once;
-    again after `close`), `put` an item, `close` (the worker's `work(queue)` returns when it takes None; joined)."""
+    """A thread fed through a queue (the nominal controller's, the nominal twin's): `start` (once; again after
+    `close`), `put` an item, `close` (the worker's `work(queue)` returns when it takes None; joined). `beside`: started
+    beside the loop (`start_beside_the_loop`); else a plain thread, which the loop's real-time grant treats as one of
+    its helpers (`helper_threads`: its CPU, one priority above it)."""
 
-    def __init__(self, name: str, work):
-        self.name, self._work = name, work
+    def __init__(self, name: str, work, beside: bool = True):
+        self.name, self._work, self.beside = name, work, beside
         self._inputs: queue.SimpleQueue = queue.SimpleQueue()
         self.thread: threading.Thread | None = None
 
     def start(self) -> None:
         if self.thread is None:
             self._inputs = queue.SimpleQueue()  # a fresh one: nothing of a closed worker's is left in it
-            self.thread = start_beside_the_loop(self.name, self._work, self._inputs)
+            if self.beside:
+                self.thread = start_beside_the_loop(self.name, self._work, self._inputs)
+            else:
+                self.thread = threading.Thread(target=self._work, args=(self._inputs,), name=self.name, daemon=True)
+                self.thread.start()
 
     def put(self, item) -> None:
         self._inputs.put(item)

@@ -189,7 +189,9 @@ class ThreadTwinRunner(InlineTwinRunner):
 
     def __init__(self, integral: TwinIntegral, lag_ticks: int, wait: bool = False):
         self.wait = wait
-        self._worker = QueueWorker("nominal-twin", self._work)
+        # With the I/O threads, one priority above the loop on its CPU, not beside it: on two CPUs the loop keeps its
+        # rate better so (docs/transfer.md, "Running a scheme on the robot").
+        self._worker = QueueWorker("nominal-twin", self._work, beside=False)
         self._stepped = threading.Condition()
         self.error: BaseException | None = None
         super().__init__(integral, lag_ticks)
