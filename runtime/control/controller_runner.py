@@ -137,7 +137,10 @@ class ThreadControllerRunner(InlineControllerRunner):
 
     def _work(self, inputs: queue.SimpleQueue) -> None:
         while (pending := inputs.get()) is not None:
-            result = self._run(pending.state, pending.base, pending.command)
+            try:
+                result = self._run(pending.state, pending.base, pending.command)
+            except BaseException as exc:  # any failure, not only a ModelError: raised on the control thread when due,
+                result = exc              # which ends the run in damping (a dead worker would hold stale targets)
             with self._done:
                 self._due.append((pending.tick, result))
                 self._done.notify_all()

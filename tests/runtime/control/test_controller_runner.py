@@ -155,6 +155,25 @@ def test_the_thread_computes_on_a_copy_of_the_reading():
         runner.close()
 
 
+class Broken(Echo):
+    """A controller with a bug of its own (not a model error)."""
+
+    def __call__(self, state, base, command):
+        raise ZeroDivisionError("a controller's own bug")
+
+
+def test_any_failure_on_the_thread_reaches_the_control_thread_not_only_a_model_error():
+    runner = ThreadControllerRunner(Broken(), 1, wait=True)
+    runner.reset()
+    runner.start()
+    try:
+        runner.post(0, reading(0.0), BASE, np.zeros(3))
+        with pytest.raises(ZeroDivisionError, match="own bug"):  # the loop then ends the run in damping
+            runner.targets(1)
+    finally:
+        runner.close()
+
+
 @pytest.mark.parametrize("threaded", [False, True])
 def test_a_controller_error_reaches_the_control_thread_at_the_tick_it_was_due(threaded):
     runner = ThreadControllerRunner(Echo(fail_at=2), 1, wait=True) if threaded \
@@ -186,16 +205,17 @@ def test_a_thread_beside_the_loop_leaves_the_loop_cpu_and_is_not_put_above_the_l
     seen = {}
     release = threading.Event()
 
+    recorded = threading.Event()
+
     def work():
         seen["cpus"] = os.sched_getaffinity(0)
         seen["policy"], seen["priority"] = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+        recorded.set()
         release.wait(5.0)
 
     thread = realtime.start_beside_the_loop("beside-test", work)
     try:
-        deadline = time.monotonic() + 5.0
-        while "cpus" not in seen and time.monotonic() < deadline:
-            time.sleep(0.001)
+        assert recorded.wait(5.0)
         assert seen["cpus"] == set(allowed[:-1])
         if _may_use_fifo():  # below the loop and its I/O threads, above normal work
             assert (seen["policy"], seen["priority"]) == (os.SCHED_FIFO, 50 - realtime.BESIDE_PRIORITY_STEPS)
