@@ -132,7 +132,8 @@ def report(name: str, stats: dict, emulator: EmulatorProcess, no_delay: bool) ->
         goal = f" (goal >= {BULK_RATE_GOAL_HZ:.0f}/s with no delay: {met})"
     print(f"     read p50/p99 {us(read.get('p50'))}/{us(read.get('p99'))} µs; bus thread: {cycle.get('cycles', 0)} "
           f"bulk cycles = {bulk_rate:.0f}/s{goal}, cycle p50/p99/max {us(cycle.get('p50'))}/{us(cycle.get('p99'))}/"
-          f"{us(cycle.get('max'))} µs; replies lost {legs.get('replies_lost_total', '?')}")
+          f"{us(cycle.get('max'))} µs; replies lost {legs.get('replies_lost_total', '?')}, taken late "
+          f"{legs.get('replies_late', '?')}")
     steal = "-" if stats["steal_s"] is None else f"{1e3 * stats['steal_s']:.0f} ms"
     held = legs.get("port_held") or {}
     print(f"     host: {legs.get('host_stalls', '?')} bus sends or reads it held (not counted against the BEARs; "
@@ -151,6 +152,11 @@ def report(name: str, stats: dict, emulator: EmulatorProcess, no_delay: bool) ->
         print(f"     tick CPU time, share of the period: p50 {100 * tick['p50']:.0f} / p99 {100 * tick['p99']:.0f} / "
               f"p99.9 {100 * tick['p99.9']:.0f} %; the largest section at p99: {worst} "
               f"{100 * shares[worst]['p99']:.0f} %")
+    costliest = stats.get("costliest_tick")
+    if costliest:
+        parts = sorted(costliest["sections_cpu_us"].items(), key=lambda kv: -kv[1])[:3]
+        print(f"     the costliest tick: #{costliest['tick']}, CPU {costliest['cpu_us']:.0f} µs in "
+              f"{costliest['wall_us']:.0f} µs of wall time (" + ", ".join(f"{k} {v:.0f}" for k, v in parts) + " µs)")
     runner = stats.get("controller") or {}
     if runner.get("lag_ticks"):
         cpu = runner.get("cpu_us") or {}

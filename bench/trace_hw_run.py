@@ -2,10 +2,11 @@
 the two CPUs ran while the host waited for its replies (Linux, root: the kernel's tracefs).
 
 Both processes write trace markers into the kernel's trace (`H req` / `H got N/10` around each host BEAR exchange,
-`H SILENCE` when the hw backend judges a silence, `E recv` / `E send` at each emulated device's pty, `P s` / `P e`
-around each physics step); the kernel records beside them every context switch and wake-up (`sched_switch`,
-`sched_wakeup`) and the tty layer's work items (`workqueue_*`: `flush_to_ldisc` moves a pty's bytes from one side to
-the other, in a `kworker` thread at normal priority). The markers come from a `sitecustomize` this script writes into
+`H late N` for the replies a bulk cycle took after their deadline, `H SILENCE` when the hw backend judges a silence,
+`E recv` / `E send` at each emulated device's pty, `P s` / `P e` around each physics step); the kernel records
+beside them every context switch and wake-up (`sched_switch`, `sched_wakeup`) and the tty layer's work items
+(`workqueue_*`: `flush_to_ldisc` moves a pty's bytes from one side to the other, in a `kworker` thread at normal
+priority). The markers come from a `sitecustomize` this script writes into
 a temporary folder on the children's PYTHONPATH: nothing in the stack changes.
 
     sudo python bench/trace_hw_run.py [--emulator-args "--bear-delay 0.0007 --bear-jitter 0.0015"] [--runs 10] \
@@ -28,6 +29,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from stall_witness import Witness
+
 from bruce_hw.emulation.process import EmulatorProcess
 
 TRACEFS = Path("/sys/kernel/tracing")
@@ -48,12 +51,24 @@ def _patch(module):
     name = module.__name__
     if name == "drivers.bear":
         exchange = module.BearBus._exchange
-        def _exchange(self, request, ids, length):
+        def _exchange(self, request, ids, length, *args, **kwargs):
             mark(f"H req {len(ids)}")
-            got = exchange(self, request, ids, length)
+            got = exchange(self, request, ids, length, *args, **kwargs)
             mark(f"H got {len(got)}/{len(ids)}")
             return got
         module.BearBus._exchange = _exchange
+        harvest = module.BearBus._harvest
+        def _harvest(self):
+            late = harvest(self)
+            mark(f"H late {0 if late is None else len(late.ids)}")
+            return late
+        module.BearBus._harvest = _harvest
+    elif name == "runtime.loop.safety":
+        trip = module.SafetyStage.trip
+        def _trip(self, cause):
+            mark("H SILENCE " + str(cause))  # the stop, whatever its cause: the window ends here
+            return trip(self, cause)
+        module.SafetyStage.trip = _trip
     elif name == "bruce_hw.bear_legs":
         silence = module.silence
         def _silence(*args, **kwargs):
@@ -82,7 +97,8 @@ def _patch(module):
         module.Plant.step = _step
 
 class _AfterImport(importlib.abc.MetaPathFinder):
-    names = {"drivers.bear", "bruce_hw.bear_legs", "drivers.emulators.pty_device", "bruce_hw.emulation.plant"}
+    names = {"drivers.bear", "bruce_hw.bear_legs", "drivers.emulators.pty_device", "bruce_hw.emulation.plant",
+             "runtime.loop.safety"}
     def find_spec(self, name, path, target=None):
         if name not in self.names:
             return None
@@ -149,8 +165,10 @@ def stamp(line: str) -> float | None:
 
 
 def long_stretches(lines: list[str], least_s: float = 0.0005) -> list[str]:
-    """Per CPU, each thread that held it for `least_s` or longer without a switch."""
+    """Per CPU, each thread that held it for `least_s` or longer without a switch (one still holding it at the
+    window's end included)."""
     out, since = [], {}
+    end = stamp(lines[-1]) if lines else None
     for line in lines:
         if "sched_switch:" not in line:
             continue
@@ -163,6 +181,9 @@ def long_stretches(lines: list[str], least_s: float = 0.0005) -> list[str]:
                 out.append(f"CPU {cpu}: {who} ran {1e3 * (t - start):.1f} ms from {start:.6f}")
         nxt = re.search(r"next_comm=(\S+) next_pid=(\d+) next_prio=(\d+)", line)
         since[cpu] = (t, f"{nxt.group(1)} (pid {nxt.group(2)}, prio {nxt.group(3)})")
+    for cpu, (start, who) in since.items():
+        if end is not None and end - start >= least_s:
+            out.append(f"CPU {cpu}: {who} ran {1e3 * (end - start):.1f} ms from {start:.6f}, still at the end")
     return out
 
 
@@ -173,6 +194,10 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--out", type=Path, default=Path("trace_out"))
     parser.add_argument("--buffer-kb", type=int, default=60000, help="per CPU: a 30-s run needs about 50 MB")
+    parser.add_argument("--until", default="no reply", metavar="TEXT",
+                        help="keep the first run whose stop cause holds TEXT (default: a BEAR silence)")
+    parser.add_argument("--witness-ms", type=float, default=0.5,
+                        help="the machine witness's threshold (bench/stall_witness.py) during each run")
     args = parser.parse_args()
     if os.geteuid() != 0:
         sys.exit("trace_hw_run: needs root (the kernel's tracefs)")
@@ -190,11 +215,12 @@ def main() -> None:
                     argv = emulator.bruce_run_argv(args.seconds, stats_path)
                     write("trace", "")
                     write("tracing_on", "1")
-                    run = subprocess.run(argv, capture_output=True, text=True)
+                    with Witness(threshold_ms=args.witness_ms) as witness:
+                        run = subprocess.run(argv, capture_output=True, text=True)
                     write("tracing_on", "0")
                     cause = json.loads(stats_path.read_text()).get("stop_cause") if stats_path.exists() else None
                     print(f"run {k + 1}: exit {run.returncode}: {cause}", flush=True)
-                    if cause and "no reply" in cause:
+                    if cause and args.until in cause:
                         trace = args.out / "trace.txt"
                         trace.write_bytes((TRACEFS / "trace").read_bytes())
                         lines = window(trace, WINDOW_S)
@@ -202,10 +228,16 @@ def main() -> None:
                                  and "sense" not in line and "dynamixel" not in line]
                         print("\n".join(marks[-40:]))
                         print("\n".join(long_stretches(lines)))
+                        if lines:
+                            end = stamp(lines[-1])
+                            seen = witness.between(end - WINDOW_S - 0.05, end)
+                            print(f"machine witness (> {args.witness_ms:g} ms) in the window: "
+                                  + (", ".join(f"{ms:.2f} ms at {1e3 * (t - end):+.1f} ms" for t, ms in seen)
+                                     or "none"))
                         print(f"trace: {trace}")
                         return
                     time.sleep(0.5)
-            print("no run ended on a silence")
+            print(f"no run ended on a stop holding {args.until!r}")
         finally:
             restore(before)
 

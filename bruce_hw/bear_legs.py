@@ -51,6 +51,14 @@ class ReplyLoss:
         self._k = (self._k + 1) % self.window
         self.total += row
 
+    def came_late(self, rows: np.ndarray) -> None:
+        """Replies of the last cycle added that came after all (`BulkReply.late`): not lost."""
+        last = (self._k - 1) % self.window
+        rows = rows[self._ring[last, rows] > 0]
+        self._ring[last, rows] = 0
+        self._in_window[rows] -= 1
+        self.total[rows] -= 1
+
     def share(self) -> np.ndarray:
         return self._in_window / self.window
 
@@ -80,6 +88,8 @@ class BearLegs:
         self.voltage = np.full(len(self.ids), np.nan)
         self.homing_offset = np.full(len(self.ids), np.nan)
         self.cycles = 0
+        self.late_replies = 0  # replies taken after their cycle's deadline (BulkReply.late)
+        self._row = {device_id: k for k, device_id in enumerate(self.ids)}
         self.first_cycle = self.last_cycle = math.nan
         self.low_latency = "not opened"
         self._monitor_tick = 0
@@ -263,19 +273,35 @@ class BearLegs:
         if self.cycles == 1:
             self.first_cycle = stamp
         self.last_cycle = stamp
+        estop = reply.estop_ids()
+        faults = {}
+        late = reply.late
+        if late is not None:  # the last cycle's lost replies, come after its deadline: its samples, not lost
+            rows = np.array([self._row[i] for i in late.ids])
+            self.loss.came_late(rows)
+            older = self._stamps[rows] < late.sent_at
+            self._position[rows[older]] = late.position[older]
+            self._velocity[rows[older]] = late.velocity[older]
+            self._iq[rows[older]] = late.iq[older]
+            self._stamps[rows[older]] = late.sent_at
+            self.late_replies += len(late.ids)
+            estop = tuple(sorted(set(estop) | set(late.estop_ids())))
+            faults.update(self._faults(late))
         answered = np.ones(len(self.ids), dtype=bool) if reply.answered is None else reply.answered
         self._keep(reply, answered, stamp)
         self.loss.add(~answered)
-        faults = {}
-        for device_id, error in zip(self.ids, reply.error.tolist(), strict=True):
-            if error & self._fault_bits:
-                faults[device_id] = reply.flags(device_id)
+        faults.update(self._faults(reply))
         if monitor:
             self._monitor_tick = 0
             self._monitored(reply, answered)
         return LegReading(self._position.copy(), self._velocity.copy(), self._iq * self.kt,
-                          float(self._stamps.min()), self._stamps.copy(), reply.estop_ids(), faults,
+                          float(self._stamps.min()), self._stamps.copy(), estop, faults,
                           self._loss_problem(stamp))
+
+    def _faults(self, reply) -> dict[int, tuple[str, ...]]:
+        """ID -> flags of the replies reporting a fault bit (the E-stop bit apart)."""
+        return {i: reply.flags(i) for i, error in zip(reply.ids, reply.error.tolist(), strict=True)
+                if error & self._fault_bits}
 
     def silence(self, reading: LegReading, now: float, stalled=None) -> str | None:
         """The silence rule (`bruce_hw.leg_bus.silence`, with `stalled` the backend's joint_stalled_between, which
@@ -316,6 +342,7 @@ class BearLegs:
         total = int(self.loss.total.sum())
         return {"bus": self.name, "cycles": self.cycles, "replies_lost": lost, "replies_lost_total": total,
                 "reply_loss_share": total / (self.cycles * len(self.ids)) if self.cycles else 0.0,
+                "replies_late": self.late_replies,
                 "watchdog_timeout": self.watchdog_count, "adapter": self.low_latency,
                 "host_stalls": self.bus.stats.host_stalls if self.bus is not None else 0,
                 "port_held": self.port_stalls.report()}
@@ -340,7 +367,8 @@ class BearLegs:
         rate = (self.cycles - 1) / span if span > 0 else math.nan
         stats = self.bus.stats if self.bus is not None else None
         lost = int(self.loss.total.sum())
-        link = "" if stats is None else (f", {lost} replies lost, {stats.retries} retries, "
+        link = "" if stats is None else (f", {lost} replies lost, {self.late_replies} taken late, "
+                                         f"{stats.retries} retries, "
                                          f"{stats.rejected_total} bytes/packets rejected, "
                                          f"{stats.host_stalls} sends or reads the host held "
                                          f"(worst {self.port_stalls.worst_s * 1e3:.1f} ms)")

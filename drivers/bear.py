@@ -8,6 +8,8 @@ code that makes it, and drivers/emulators/bear.py makes the same ones.
 
 from __future__ import annotations
 
+import math
+import os
 import struct
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -58,6 +60,9 @@ SEND_STALL_S = 0.001
 # Most host time a call does not count against the device: beyond it the readings are too old for any data-age limit
 # (safety.max_sensor_age_s is at most 50 ms), so waiting longer would gain nothing.
 MAX_STALL_CREDIT_S = 0.05
+# Reads of at most 4 KiB each that take in the late replies before a request: ten replies are a few hundred bytes, so
+# this only bounds what a babbling port can cost.
+HARVEST_READS = 8
 
 
 # -- replies --------------------------------------------------------------------------------------------------------
@@ -96,6 +101,10 @@ class BulkReply:
     values: np.ndarray  # (len(ids), len(registers)) float64; NaN rows for IDs that did not answer (partial replies)
     error: np.ndarray  # (len(ids),) uint8 error bytes; 0 where nothing was read (write-only bulk, no answer)
     answered: np.ndarray | None = None  # (len(ids),) bool; None: every ID answered
+    sent_at: float = math.nan  # time.monotonic() when the request these replies answer began to go out
+    # Replies to the previous partial bulk request that came after its deadline and before this request (rows for
+    # those IDs only, its own `sent_at`): data all the same, no older than that request (`BearBus.bulk_comm`).
+    late: BulkReply | None = None
 
     @property
     def lost_ids(self) -> tuple[int, ...]:
@@ -168,6 +177,10 @@ class BearBus:
         # The port call in progress: (when it has taken longer than it takes by itself, since when it is then held)
         self._call: tuple[float, float] | None = None
         self._parser = StatusParser(self.stats)
+        self._sent_at = math.nan  # when the last request began to go out
+        # A partial bulk request whose deadline passed with IDs unanswered: (those IDs, its read registers, when it
+        # went out), until the next request; the parser keeps the bytes of a reply cut by the deadline meanwhile.
+        self._awaited: tuple[tuple[int, ...], list[Register], float] | None = None
         self._io_errors = PORT_ERRORS
         try:
             # 8N1; the read timeout is one slice, so a read returns at the latest after read_slice_s.
@@ -290,6 +303,7 @@ class BearBus:
         if not reads:  # nobody answers a write-only bulk
             self._send(request)
             return BulkReply(self.port, ids, names, np.zeros((len(ids), 0)), np.zeros(len(ids), np.uint8))
+        late = self._harvest() if partial and self._awaited is not None else None
         got: dict[int, StatusPacket] = {}
         pending = list(ids)
         for attempt in range(1 if partial else self.tries):
@@ -297,21 +311,24 @@ class BearBus:
                 self.stats.retries += 1
                 # only to the motors that did not answer: their goals are written again (goal writes are idempotent)
                 request = encode_bulk(pending, reads, writes, [rows[i] for i in pending] if writes else None)
-            got.update(self._exchange(request, pending, reply_length(len(reads))))
+            got.update(self._exchange(request, pending, reply_length(len(reads)), keep_tail=partial))
             pending = [i for i in pending if i not in got]
             if not pending:
                 break
         fmt = "<" + "".join(r.fmt for r in reads)
+        sent_at = self._sent_at
         if pending:
             self.stats.timeouts += 1
             if not partial:
                 raise BusTimeout(self.port, pending, f"BULK_COMM, {self.tries} tries")
+            self._awaited = (tuple(pending), reads, sent_at)
             lost = np.full(len(reads), np.nan)
             table = np.array([struct.unpack(fmt, got[i].data) if i in got else lost for i in ids], dtype=np.float64)
             errors = np.array([got[i].error if i in got else 0 for i in ids], dtype=np.uint8)
-            return BulkReply(self.port, ids, names, table, errors, np.array([i in got for i in ids]))
+            return BulkReply(self.port, ids, names, table, errors, np.array([i in got for i in ids]), sent_at, late)
         table = np.array([struct.unpack(fmt, got[i].data) for i in ids], dtype=np.float64)
-        return BulkReply(self.port, ids, names, table, np.array([got[i].error for i in ids], dtype=np.uint8))
+        return BulkReply(self.port, ids, names, table, np.array([got[i].error for i in ids], dtype=np.uint8),
+                         None, sent_at, late)
 
     def bulk_cycle(self, ids: Sequence[int], mode: Mode | int | str | None, goal_position=None, goal_velocity=None,
                    goal_iq=None, partial: bool = False, extra_reads: Sequence[str] = ()) -> BulkReply:
@@ -352,6 +369,7 @@ class BearBus:
         the kernel for the port's receive work to finish (a tty worker that real-time threads keep from its CPU holds
         it for milliseconds): that wait is the host's, reported to `on_host_stall`."""
         start = time.monotonic()
+        self._sent_at, self._awaited = start, None  # the flush drops replies still awaited: they are no one's now
         self._call = (start + SEND_STALL_S, start)
         try:
             self._serial.reset_input_buffer()
@@ -363,6 +381,62 @@ class BearBus:
             end = time.monotonic()
             if end - start > SEND_STALL_S:
                 self._host_stall(start, end)
+
+    def _harvest(self) -> BulkReply | None:
+        """The replies to the last partial bulk request that came after its deadline, read before the next request
+        flushes them away: rows for the IDs that answered late, stamped with that request's `sent_at`.
+
+        On a half-duplex bus the BEARs speak only when asked and the host asks one request at a time, so bytes in
+        the input before the next request are answers to an earlier one, and what the flush does not drop answers
+        the last (`_send` flushes before every request). Most come late because the host did not hand them over in
+        time (the kernel's tty work for the port behind real-time threads, a USB adapter's latency timer), not
+        because the motor was slow: they are the motor's state at some moment after that request went out. A reply
+        that never comes is still silence, which the data age catches as before. Reading a tty first waits for its
+        receive work in progress (as the flush does): that wait is the host's, reported like a held send."""
+        ids, reads, sent_at = self._awaited
+        self._awaited = None
+        fileno = getattr(self._serial, "fileno", None)
+        if fileno is None:  # no POSIX descriptor (Windows): the flush drops them, as it did
+            self._parser.clear()
+            return None
+        start = time.monotonic()
+        self._call = (start + SEND_STALL_S, start)
+        data = bytearray()
+        try:
+            fd = fileno()
+            for _ in range(HARVEST_READS):  # pyserial keeps the descriptor non-blocking
+                try:
+                    chunk = os.read(fd, 4096)
+                except BlockingIOError:  # nothing more (and no receive work left in flight)
+                    break
+                if not chunk:
+                    break
+                data += chunk
+        except self._io_errors as exc:
+            raise DriverError(f"{self.port}: read failed: {exc}") from exc
+        finally:
+            self._call = None
+            end = time.monotonic()
+            if end - start > SEND_STALL_S:
+                self._host_stall(start, end)
+        self._parser.expect(reply_length(len(reads)), ids)
+        got: dict[int, StatusPacket] = {}
+        for packet in self._parser.feed(data):
+            if packet.id in got:
+                self.stats.reject("duplicate")
+            else:
+                got[packet.id] = packet
+        if len(got) < len(ids) and self._parser.pending:
+            self.stats.reject("truncated")
+        self._parser.clear()
+        if not got:
+            return None
+        answered = tuple(i for i in ids if i in got)
+        self.stats.late_replies += len(answered)
+        fmt = "<" + "".join(r.fmt for r in reads)
+        table = np.array([struct.unpack(fmt, got[i].data) for i in answered], dtype=np.float64)
+        return BulkReply(self.port, answered, tuple(r.name for r in reads), table,
+                         np.array([got[i].error for i in answered], dtype=np.uint8), None, sent_at)
 
     def held_since(self, now: float) -> float | None:
         """If the port call in progress (a send, a read pass) has taken longer than it takes by itself, since when
@@ -399,8 +473,10 @@ class BearBus:
         self.stats.timeouts += 1
         raise BusTimeout(self.port, [device_id], f"{what}, {tries} tries")
 
-    def _exchange(self, request: bytes, ids: Sequence[int], length: int | None) -> dict[int, StatusPacket]:
-        """Send one request and collect one reply per ID until all are in or the deadline passes."""
+    def _exchange(self, request: bytes, ids: Sequence[int], length: int | None, keep_tail: bool = False
+                  ) -> dict[int, StatusPacket]:
+        """Send one request and collect one reply per ID until all are in or the deadline passes. `keep_tail`: a
+        reply cut by the deadline stays in the parser for `_harvest` to complete."""
         per_reply = 4 + (length if length is not None else 2)
         budget = self.reply_timeout_s + self._wire_s(len(request) + per_reply * len(ids))
         self._parser.clear()
@@ -443,6 +519,8 @@ class BearBus:
                 self._host_stall(end - stalled, end)
             if ids[-1] in got:
                 break  # replies come in request order: one still missing before the last is lost, not late
+        if len(got) < len(ids) and keep_tail:
+            return got
         if len(got) < len(ids) and self._parser.pending:
             self.stats.reject("truncated")
         self._parser.clear()

@@ -47,6 +47,7 @@ class LinkStats:
     timeouts: int = 0
     retries: int = 0
     host_stalls: int = 0  # sends the host held, reads it was late for by more than a slice (not the device's)
+    late_replies: int = 0  # replies that came after their request's deadline, taken before the next request
 
     def reject(self, reason: str) -> None:
         self.rejected[reason] += 1

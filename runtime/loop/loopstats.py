@@ -70,10 +70,17 @@ class LoopStats:
         self.late_not_run = 0                 # the rest: the control thread ready and not run
         self.skipped_ticks = 0
         self._worst: list[int] = []  # min-heap of the largest lateness values (ns)
+        # The tick whose sections took the most CPU time: (its index, its nine marks on each clock), so a run says
+        # where its one long tick went, not only that the p99.9 has one.
+        self._costliest: tuple[int, tuple[int, ...], tuple[int, ...]] | None = None
+        self._costliest_ns = -1
 
     def add_sections(self, wall: tuple[int, ...], cpu: tuple[int, ...]) -> None:
         """One tick's sections from its nine marks (ns) on each clock: before read, after read, policy, Eq. 8,
         PINN, mixing, safety, write and telemetry. Mixing is Eq. 8 and the scheme's torque together."""
+        if cpu[8] - cpu[0] > self._costliest_ns:
+            self._costliest_ns = cpu[8] - cpu[0]
+            self._costliest = (self.ticks, wall, cpu)
         for marks, hists in ((wall, self._wall_list), (cpu, self._cpu_list)):
             m0, m1, m2, m3, m4, m5, m6, m7, m8 = marks
             read, policy, pinn, mixing, safety, write, telemetry = hists
@@ -139,7 +146,21 @@ class LoopStats:
                                 for name, h in self.cpu_sections.items() if h.n},
             "cpu_share_of_period": self._cpu_shares(),
             "worst_overruns_us": [ns / 1000.0 for ns in sorted(self._worst, reverse=True)],
+            "costliest_tick": self._costliest_json(),
         }
+
+    def _costliest_json(self) -> dict | None:
+        """The tick whose sections took the most CPU time: its index, its CPU and wall time, each section's CPU."""
+        if self._costliest is None:
+            return None
+        tick, wall, cpu = self._costliest
+
+        def spans(m: tuple[int, ...]) -> dict[str, float]:
+            return {"read": (m[1] - m[0]) / 1e3, "policy": (m[2] - m[1]) / 1e3, "pinn": (m[4] - m[3]) / 1e3,
+                    "mixing": (m[3] - m[2] + m[5] - m[4]) / 1e3, "safety": (m[6] - m[5]) / 1e3,
+                    "write": (m[7] - m[6]) / 1e3, "telemetry": (m[8] - m[7]) / 1e3}
+        return {"tick": tick, "cpu_us": (cpu[8] - cpu[0]) / 1e3, "wall_us": (wall[8] - wall[0]) / 1e3,
+                "sections_cpu_us": spans(cpu)}
 
     def _cpu_shares(self) -> dict | None:
         """The tick's CPU time and each section's, p50/p99/p99.9, as shares of the loop's period."""
@@ -180,4 +201,9 @@ class LoopStats:
             parts = [f"{name} {100 * v['p99']:.0f}" for name, v in shares.items() if name != "tick"]
             lines.append(f"  CPU time, % of the period: tick p50 {100 * tick['p50']:.0f} / p99 {100 * tick['p99']:.0f}"
                          f" / p99.9 {100 * tick['p99.9']:.0f}; sections p99: " + ", ".join(parts))
+        costliest = j["costliest_tick"]
+        if costliest:
+            top = sorted(costliest["sections_cpu_us"].items(), key=lambda kv: -kv[1])[:3]
+            lines.append(f"  the costliest tick: #{costliest['tick']}, CPU {costliest['cpu_us']:.0f} µs ("
+                         + ", ".join(f"{name} {value:.0f}" for name, value in top) + ")")
         return "\n".join(lines)

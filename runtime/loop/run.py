@@ -141,7 +141,8 @@ class RunSummary:
                       f"{cycle['p99']:.0f} / max {cycle['max']:.0f} µs)") if cycle.get("p50") is not None else ""
             lines.append(f"  {legs['bus']}: {legs['cycles']} cycles{timing}, {legs['replies_lost_total']} replies lost "
                          f"({100 * legs['reply_loss_share']:.2f} %)"
-                         + (": " + ", ".join(f"ID {i} {n}" for i, n in lost.items()) if lost else ""))
+                         + (": " + ", ".join(f"ID {i} {n}" for i, n in lost.items()) if lost else "")
+                         + (f"; {legs['replies_late']} taken late" if legs.get("replies_late") else ""))
         stalls = (self.link or {}).get("host_stalls")
         if stalls is not None:
             lines.append(f"  host: {stalls['count']} stalls (this process not run for over 2 ms: worst "

@@ -8,6 +8,7 @@ import pytest
 
 from bruce_hw.bear_legs import MONITOR_EVERY_TICKS, BearLegs
 from bruce_hw.config import load_config
+from drivers.bear_codec import reply_length
 from drivers.emulators.bear import BearBusEmulator
 
 IDS = list(range(1, 11))
@@ -59,3 +60,31 @@ def test_a_bear_that_does_not_answer_the_monitoring_cycle_keeps_its_last_figures
     for _ in range(MONITOR_EVERY_TICKS):
         legs.cycle(None)
     assert legs.temperature[4] == pytest.approx(60.0)
+
+
+def test_replies_taken_late_are_samples_stamped_with_their_request_and_not_lost(legs):
+    """A cycle whose replies all came after its deadline: the next cycle keeps them as samples as old as the request
+    they answer (never newer ones it has), does not count them lost, and sees an E-stop bit they carry."""
+    import time
+
+    legs, emulator = legs
+    legs.bus.reply_timeout_s = 0.002
+    legs.cycle(None)
+    emulator.set_measured_many(IDS, [0.05 * i for i in IDS], [0.0] * 10, [0.0] * 10)
+    emulator.set_estop(True, ids=[6])
+    emulator.set_reply_delay(0.02)
+    asked = time.monotonic()
+    lost = legs.cycle(None)
+    returned = time.monotonic()
+    assert (lost.stamps < asked).all() and legs.loss.total.sum() == 10 and lost.estop_ids == ()
+    deadline = time.monotonic() + 5
+    while legs.bus._serial.in_waiting < 10 * (4 + reply_length(3)):
+        assert time.monotonic() < deadline, "the delayed replies did not come"
+        time.sleep(0.001)
+    emulator.silence(IDS)  # the next cycle's own request gets nothing: what it has came late
+    reading = legs.cycle(None)
+    assert legs.late_replies == 10 and legs.loss.total.sum() == 10  # this cycle's ten, not the last one's
+    assert (asked <= reading.stamps).all() and (reading.stamps <= returned).all()
+    np.testing.assert_allclose(reading.position, [0.05 * i for i in IDS], rtol=1e-6)
+    assert reading.estop_ids == (6,)
+    assert legs.link_report()["replies_late"] == 10

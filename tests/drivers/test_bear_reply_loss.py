@@ -186,3 +186,82 @@ def test_a_read_pass_the_host_holds_counts_from_the_end_of_its_slice_while_it_la
         assert since is not None and started - 0.001 < since <= started + bus.read_slice_s + 0.001
         assert any(start <= since + 0.001 and end >= started + 0.010 for start, end in held), held
         assert bus.held_since(time.monotonic()) is None
+
+
+# -- replies that come after their deadline -------------------------------------------------------------------------
+REPLY_BYTES = 4 + reply_length(3)  # one BEAR's reply to the tick's bulk cycle
+
+
+def _wait_for_input(bus, n_bytes, timeout_s=5.0):
+    """Until the port holds `n_bytes` (the emulator's thread and the kernel may be slow on a busy machine)."""
+    deadline = time.monotonic() + timeout_s
+    while bus._serial.in_waiting < n_bytes:
+        assert time.monotonic() < deadline, f"{bus._serial.in_waiting} of {n_bytes} bytes came"
+        time.sleep(0.001)
+
+
+def test_replies_that_come_after_the_deadline_are_taken_before_the_next_request(emulator):
+    """A cycle's replies that come after its deadline are that cycle's data all the same: the next bulk cycle reads
+    them before its flush and hands them over as `late`, stamped with the request they answer."""
+    emulator.set_measured_many(IDS, [0.1 * i for i in IDS], [0.01 * i for i in IDS], [0.5] * 10)
+    emulator.set_reply_delay(0.02)  # ten times the reply wait
+    with BearBus(emulator.path, reply_timeout_s=0.002) as bus:
+        first = bus.bulk_cycle(IDS, None, partial=True)
+        assert first.lost_ids == tuple(IDS) and first.late is None
+        _wait_for_input(bus, len(IDS) * REPLY_BYTES)
+        emulator.set_reply_delay(0.0)
+        second = bus.bulk_cycle(IDS, None, partial=True)
+        late = second.late
+        assert late is not None and late.ids == tuple(IDS) and bus.stats.late_replies == 10
+        assert late.sent_at == first.sent_at < second.sent_at
+        np.testing.assert_allclose(late.position, [0.1 * i for i in IDS], rtol=1e-6)
+        np.testing.assert_allclose(late.velocity, [0.01 * i for i in IDS], rtol=1e-6)
+        assert late.answered is None and late.late is None
+        assert bus.stats.rejected_total == 0
+
+
+def test_late_replies_are_dropped_by_any_other_request(emulator):
+    """Only the tick's next bulk cycle takes them: any other request flushes them, as before."""
+    emulator.set_reply_delay(0.02)
+    with BearBus(emulator.path, reply_timeout_s=0.002) as bus:
+        assert bus.bulk_cycle(IDS, None, partial=True).lost_ids == tuple(IDS)
+        _wait_for_input(bus, len(IDS) * REPLY_BYTES)
+        emulator.set_reply_delay(0.0)
+        bus.ping(1)  # its flush drops them
+        assert bus.bulk_cycle(IDS, None, partial=True).late is None
+        assert bus.stats.late_replies == 0
+
+
+def test_a_reply_cut_by_the_deadline_is_completed_by_the_bytes_that_come_after_it():
+    """The deadline falls inside ID 4's reply (the replies stopped coming for longer than REPLY_GAP_S): the parser
+    keeps the cut bytes and the next cycle completes ID 4 and takes 5..10 from what came after."""
+    import os
+    import threading
+
+    master, slave = os.openpty()
+    replies = b"".join(_reply(i, 0.1 * i, 0.0, 1.0) for i in IDS)
+    cut = 3 * REPLY_BYTES + REPLY_BYTES // 2
+    asked = threading.Event()
+
+    def answer_first_part():
+        os.read(master, 4096)  # the bulk request
+        asked.set()
+        os.write(master, replies[:cut])
+
+    responder = threading.Thread(target=answer_first_part, daemon=True)
+    try:
+        with BearBus(os.ttyname(slave), reply_timeout_s=0.5) as bus:  # the long wait is only before the first byte
+            responder.start()
+            first = bus.bulk_cycle(IDS, None, partial=True)
+            assert asked.is_set() and first.lost_ids == tuple(range(4, 11))
+            os.write(master, replies[cut:])
+            _wait_for_input(bus, len(replies) - cut)
+            second = bus.bulk_cycle(IDS, None, partial=True)
+            os.read(master, 4096)
+            assert second.late is not None and second.late.ids == tuple(range(4, 11))
+            np.testing.assert_allclose(second.late.position, [0.1 * i for i in range(4, 11)], rtol=1e-6)
+            assert bus.stats.rejected_total == 0 and bus.stats.late_replies == 7
+    finally:
+        responder.join(1)
+        os.close(master)
+        os.close(slave)

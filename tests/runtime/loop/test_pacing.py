@@ -106,3 +106,26 @@ def test_late_ticks_are_split_into_the_machine_s_the_loop_s_own_and_the_loop_not
     assert "1 with the host stalled, 1 of the loop's own CPU time, 2 with the loop ready and not run" in stats.text()
     stats.attribute(None)  # no witness (the paced mock): nothing is the machine's
     assert (stats.late_machine, stats.late_own, stats.late_not_run) == (0, 1, 3)
+
+
+def test_the_costliest_tick_is_kept_with_its_sections():
+    """One tick whose policy took 9 ms of CPU among ticks of 200 µs: the stats name it and the section it went to."""
+    from runtime.loop.loopstats import LoopStats
+
+    def marks(policy_us: int, base: int) -> tuple[int, ...]:
+        steps = (40, policy_us, 10, 0, 20, 30, 50, 10)  # read, policy, Eq. 8, PINN, mixing, safety, write, telemetry
+        out = [base]
+        for step in steps:
+            out.append(out[-1] + 1000 * step)
+        return tuple(out)
+
+    stats = LoopStats()
+    assert stats.to_json()["costliest_tick"] is None
+    for tick in range(50):
+        policy = 9000 if tick == 17 else 40
+        stats.add_sections(marks(policy, 10_000_000 * tick), marks(policy, 5_000_000 * tick))
+        stats.ticks = tick + 1
+    costliest = stats.to_json()["costliest_tick"]
+    assert costliest["tick"] == 17 and costliest["cpu_us"] == pytest.approx(9160)
+    assert max(costliest["sections_cpu_us"], key=costliest["sections_cpu_us"].get) == "policy"
+    assert costliest["sections_cpu_us"]["policy"] == pytest.approx(9000)
