@@ -8,6 +8,7 @@ code that makes it, and drivers/emulators/bear.py makes the same ones.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import struct
@@ -368,14 +369,23 @@ class BearBus:
         """Flush stale input (late replies of an earlier request), then write the whole packet. The flush waits in
         the kernel for the port's receive work to finish (a tty worker that real-time threads keep from its CPU holds
         it for milliseconds): that wait is the host's, reported to `on_host_stall`."""
-        start = time.monotonic()
-        self._sent_at, self._awaited = start, None  # the flush drops replies still awaited: they are no one's now
-        self._call = (start + SEND_STALL_S, start)
-        try:
+        self._awaited = None  # the flush drops replies still awaited: they are no one's now
+        with self._port_call("write") as start:
+            self._sent_at = start
             self._serial.reset_input_buffer()
             self._serial.write(packet)
+
+    @contextlib.contextmanager
+    def _port_call(self, what: str):
+        """A call into the port that waits for its receive work in the kernel (a flush, a read of what is there):
+        yields its start; one that took longer than SEND_STALL_S was held by the host, reported to `on_host_stall`
+        (and seen by `held_since` while it lasts); a port error is a DriverError naming the port and `what`."""
+        start = time.monotonic()
+        self._call = (start + SEND_STALL_S, start)
+        try:
+            yield start
         except self._io_errors as exc:
-            raise DriverError(f"{self.port}: write failed: {exc}") from exc
+            raise DriverError(f"{self.port}: {what} failed: {exc}") from exc
         finally:
             self._call = None
             end = time.monotonic()
@@ -399,10 +409,8 @@ class BearBus:
         if fileno is None:  # no POSIX descriptor (Windows): the flush drops them, as it did
             self._parser.clear()
             return None
-        start = time.monotonic()
-        self._call = (start + SEND_STALL_S, start)
         data = bytearray()
-        try:
+        with self._port_call("read"):
             fd = fileno()
             for _ in range(HARVEST_READS):  # pyserial keeps the descriptor non-blocking
                 try:
@@ -412,20 +420,9 @@ class BearBus:
                 if not chunk:
                     break
                 data += chunk
-        except self._io_errors as exc:
-            raise DriverError(f"{self.port}: read failed: {exc}") from exc
-        finally:
-            self._call = None
-            end = time.monotonic()
-            if end - start > SEND_STALL_S:
-                self._host_stall(start, end)
         self._parser.expect(reply_length(len(reads)), ids)
         got: dict[int, StatusPacket] = {}
-        for packet in self._parser.feed(data):
-            if packet.id in got:
-                self.stats.reject("duplicate")
-            else:
-                got[packet.id] = packet
+        self._take(data, got)
         if len(got) < len(ids) and self._parser.pending:
             self.stats.reject("truncated")
         self._parser.clear()
@@ -437,6 +434,14 @@ class BearBus:
         table = np.array([struct.unpack(fmt, got[i].data) for i in answered], dtype=np.float64)
         return BulkReply(self.port, answered, tuple(r.name for r in reads), table,
                          np.array([got[i].error for i in answered], dtype=np.uint8), None, sent_at)
+
+    def _take(self, data: bytes, got: dict[int, StatusPacket]) -> None:
+        """The replies in `data` into `got`, the first one per ID (a second is counted as a duplicate)."""
+        for packet in self._parser.feed(data):
+            if packet.id in got:
+                self.stats.reject("duplicate")
+            else:
+                got[packet.id] = packet
 
     def held_since(self, now: float) -> float | None:
         """If the port call in progress (a send, a read pass) has taken longer than it takes by itself, since when
@@ -502,11 +507,7 @@ class BearBus:
                 # rest is lost, so a lost reply costs that gap, not the whole timeout (which covers the bus delay
                 # before the first reply).
                 deadline = min(deadline, now + REPLY_GAP_S + self._wire_s(missing))
-            for packet in self._parser.feed(chunk):
-                if packet.id in got:
-                    self.stats.reject("duplicate")
-                else:
-                    got[packet.id] = packet
+            self._take(chunk, got)
             # A pass takes at most its allowance unless the host did not run this thread (preempted, a paused VM):
             # the replies that came meanwhile are still on their way through the kernel (the tty's work item was
             # stalled too), so that time is the host's, not the device's, and does not count against the reply (up
