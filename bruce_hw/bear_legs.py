@@ -183,14 +183,15 @@ class BearLegs:
         for again)."""
         reply = self.bus.bulk_cycle(self.ids, None, extra_reads=MONITOR_REGISTERS)
         answered = np.ones(len(self.ids), dtype=bool)
-        self._keep(reply, answered, time.monotonic())
+        self._keep(answered, reply, answered, time.monotonic())
         self._monitored(reply, answered)
 
-    def _keep(self, reply, answered: np.ndarray, stamp: float) -> None:
-        self._position[answered] = reply.position[answered]
-        self._velocity[answered] = reply.velocity[answered]
-        self._iq[answered] = reply.iq[answered]
-        self._stamps[answered] = stamp
+    def _keep(self, rows: np.ndarray, reply, taken: np.ndarray, stamp: float) -> None:
+        """The samples `reply` brought in its rows `taken` become the kept ones of actuators `rows`, as of `stamp`."""
+        self._position[rows] = reply.position[taken]
+        self._velocity[rows] = reply.velocity[taken]
+        self._iq[rows] = reply.iq[taken]
+        self._stamps[rows] = stamp
 
     def clear_watchdog(self) -> None:
         """watchdog_timeout back to 0 (a clean shutdown leaves the BEARs as other software expects them): config
@@ -279,16 +280,13 @@ class BearLegs:
         if late is not None:  # the last cycle's lost replies, come after its deadline: its samples, not lost
             rows = np.array([self._row[i] for i in late.ids])
             self.loss.came_late(rows)
-            older = self._stamps[rows] < late.sent_at
-            self._position[rows[older]] = late.position[older]
-            self._velocity[rows[older]] = late.velocity[older]
-            self._iq[rows[older]] = late.iq[older]
-            self._stamps[rows[older]] = late.sent_at
+            older = self._stamps[rows] < late.sent_at  # never in place of a newer sample
+            self._keep(rows[older], late, older, late.sent_at)
             self.late_replies += len(late.ids)
             estop = tuple(sorted(set(estop) | set(late.estop_ids())))
             faults.update(self._faults(late))
         answered = np.ones(len(self.ids), dtype=bool) if reply.answered is None else reply.answered
-        self._keep(reply, answered, stamp)
+        self._keep(answered, reply, answered, stamp)
         self.loss.add(~answered)
         faults.update(self._faults(reply))
         if monitor:
