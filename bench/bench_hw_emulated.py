@@ -123,7 +123,8 @@ def report(name: str, stats: dict, emulator: EmulatorProcess, no_delay: bool) ->
     print(f"   {name}: {stats['final_state']} ({stats['stop_cause']}); exit {stats['returncode']}"
           f"{' -- TRIPPED' if tripped else ''}")
     print(f"     control rate {rate:.0f} Hz ({stats['ticks']} ticks in {stats['loop_s']:.2f} s); late "
-          f"{stats['late_ticks']} = {100 * stats['late_share']:.2f} %, skipped {stats['skipped_ticks']}; work p50/p99 "
+          f"{stats['late_ticks']} = {100 * stats['late_share']:.2f} %, skipped {stats['skipped_ticks']}, breaths "
+          f"{stats['breaths']}; work p50/p99 "
           f"{us(stats['work_us']['p50'])}/{us(stats['work_us']['p99'])} µs")
     read = stats["sections_us"].get("read", {})
     goal = ""

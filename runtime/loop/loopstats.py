@@ -75,6 +75,7 @@ class LoopStats:
         self.late_own: int | None = None      # late ticks the loop's own CPU time made late
         self.late_not_run = 0                 # the rest: the control thread ready and not run
         self.skipped_ticks = 0
+        self.breaths = 0  # short sleeps the pacer took after a period without one (runtime/loop/pacing.py)
         self._worst: list[int] = []  # min-heap of the largest lateness values (ns)
         # The tick whose sections took the most CPU time: (its index, its nine marks on each clock), so a run says
         # where its one long tick went, not only that the p99.9 has one.
@@ -138,6 +139,7 @@ class LoopStats:
             "loop_s": self.loop_s,
             "rate_hz": (self.ticks - 1) / self.loop_s if self.loop_s > 0 else None,
             "skipped_ticks": self.skipped_ticks,
+            "breaths": self.breaths,
             "work_us": {"p50": self.work.percentile(50), "p99": self.work.percentile(99),
                         "max": self.work.max_ns / 1000.0 if self.work.n else None},
             "cpu_us": {"p50": self.cpu.percentile(50), "p99": self.cpu.percentile(99),
@@ -189,7 +191,7 @@ class LoopStats:
                  + ("" if self.late_own is None else
                     f": {self.late_machine} with the host stalled, {self.late_own} of the loop's own CPU time, "
                     f"{self.late_not_run} with the loop ready and not run")
-                 + f"), skipped {self.skipped_ticks}",
+                 + f"), skipped {self.skipped_ticks}, breaths {self.breaths}",
                  f"  tick CPU time p50 {us(j['cpu_us']['p50'])} / p99 {us(j['cpu_us']['p99'])} / p99.9 "
                  f"{us(j['cpu_us']['p99.9'])} µs",
                  f"  data age p50 {us(j['data_age_us']['p50'])} / p99 {us(j['data_age_us']['p99'])} / max "

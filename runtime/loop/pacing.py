@@ -9,6 +9,14 @@ slack, so a sleep wakes within tens of microseconds, and a spin would count agai
 into real-time throttling, which stops every real-time thread on the CPU for the rest of the second (50 ms
 stalls). A tick that starts more than `late_after_s` past its deadline is
 late; if whole periods were missed, their ticks are skipped and counted, never run in a burst to catch up.
+
+A SCHED_FIFO loop that is behind never sleeps, and nothing at normal priority runs on its CPU meanwhile: not the
+kernel's tty worker that moves the bus adapter's bytes (a USB adapter's replies, a pseudo-terminal's requests),
+which the scheduler often wakes on the loop's CPU. Traced on the hw path (docs/results/timing.md): the loop ran
+7.2 ms of late ticks back to back while the worker holding the host's request waited on its CPU, and every BEAR
+looked silent. So a real-time loop that has not slept for a whole period sleeps `breath_s` before its next tick
+(counted as `breaths`): the worker's few microseconds run then, at a cost of tens of microseconds to a tick that
+was late anyway.
 """
 
 from __future__ import annotations
@@ -18,19 +26,26 @@ import time
 
 
 class Pacer:
-    def __init__(self, period_s: float, spin_s: float = 200e-6, late_after_s: float = 250e-6):
+    def __init__(self, period_s: float, spin_s: float = 200e-6, late_after_s: float = 250e-6,
+                 breath_s: float = 50e-6):
         self.period_ns = round(period_s * 1e9)
         self.spin_ns = round(spin_s * 1e9)
         self.late_ns = round(late_after_s * 1e9)
+        self.breath_ns = round(breath_s * 1e9)
         self.deadline_ns = 0
+        self.slept_ns = 0  # when the thread last came back from a sleep
         self.late_ticks = 0
         self.skipped_ticks = 0
+        self.breaths = 0
 
     def start(self) -> None:
-        """From now; call it on the thread that will wait (its scheduling decides whether to spin)."""
+        """From now; call it on the thread that will wait (its scheduling decides whether to spin and to breathe)."""
         if _fifo():
             self.spin_ns = 0
-        self.deadline_ns = time.monotonic_ns() + self.period_ns
+        else:
+            self.breath_ns = 0  # at normal priority the scheduler shares the CPU by itself
+        self.slept_ns = time.monotonic_ns()
+        self.deadline_ns = self.slept_ns + self.period_ns
 
     def wait(self) -> int:
         """Block until this tick's deadline; returns how far past it the tick starts (ns, >= 0)."""
@@ -39,8 +54,13 @@ class Pacer:
             remaining = self.deadline_ns - now - self.spin_ns
             if remaining > 0:
                 time.sleep(remaining / 1e9)
+                self.slept_ns = time.monotonic_ns()
             while (now := time.monotonic_ns()) < self.deadline_ns:
                 time.sleep(0)
+        if self.breath_ns and now - self.slept_ns > self.period_ns:  # a period without a sleep: let others run
+            time.sleep(self.breath_ns / 1e9)
+            now = self.slept_ns = time.monotonic_ns()
+            self.breaths += 1
         behind = now - self.deadline_ns
         if behind > self.late_ns:  # late on arrival, or woken late (the machine did not run us on time)
             self.late_ticks += 1

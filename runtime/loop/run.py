@@ -589,7 +589,7 @@ def _loop(backend: Backend, config: RobotConfig, runner: InlineControllerRunner,
             if observer_stop:
                 break
     finally:  # a backend error raised from read() still leaves correct counters
-        stats.late_ticks, stats.skipped_ticks = pacer.late_ticks, pacer.skipped_ticks
+        stats.late_ticks, stats.skipped_ticks, stats.breaths = pacer.late_ticks, pacer.skipped_ticks, pacer.breaths
         if realtime:  # late ticks attributed to the machine, the loop's own CPU time, or the loop not run
             stats.attribute(backend.stalled_between if backend.host_witness else None)
         if tick > 1:

@@ -19,13 +19,17 @@ class FakeClock:
     def __init__(self):
         self.now_ns = 0
         self.sleeps_ns: list[int] = []
+        self.naps: list[tuple[int, int]] = []  # (start, end) of each sleep longer than a spin's turn
 
     def monotonic_ns(self) -> int:
         return self.now_ns
 
     def sleep(self, seconds: float) -> None:
         self.sleeps_ns.append(round(seconds * 1e9))
+        start = self.now_ns
         self.now_ns += max(round(seconds * 1e9), SPIN_TURN_NS)  # sleep(0), a turn of the spin, takes 1 us here
+        if seconds > 0:
+            self.naps.append((start, self.now_ns))
 
     def work(self, ns: int) -> None:
         self.now_ns += ns
@@ -38,25 +42,52 @@ def clock(monkeypatch):
     return fake
 
 
-def _pacer(monkeypatch, fifo: bool) -> pacing.Pacer:
+def _pacer(monkeypatch, fifo: bool, **options) -> pacing.Pacer:
     monkeypatch.setattr(pacing, "_fifo", lambda: fifo)
-    pacer = pacing.Pacer(PERIOD_NS / 1e9)
+    pacer = pacing.Pacer(PERIOD_NS / 1e9, **options)
     pacer.start()
     return pacer
 
 
-def test_a_late_tick_runs_at_once_and_skips_the_periods_it_missed(clock, monkeypatch):
+def test_a_late_tick_runs_after_a_breath_and_skips_the_periods_it_missed(clock, monkeypatch):
     pacer = _pacer(monkeypatch, fifo=True)
     clock.work(3_400_000)  # the tick overran its deadline by 2.4 ms
     clock.sleeps_ns.clear()
     behind = pacer.wait()
-    assert clock.sleeps_ns == [] and behind == 2_400_000
+    # 3.4 ms without a sleep: the real-time loop sleeps 50 us (the tty worker on its CPU runs then), no longer
+    assert clock.sleeps_ns == [50_000] and behind == 2_450_000 and pacer.breaths == 1
     assert pacer.late_ticks == 1 and pacer.skipped_ticks == 2  # two whole periods missed, not run in a burst
     assert pacer.deadline_ns == 4_000_000  # this tick stands for the period from 3 ms; the next one is due at 4
 
 
-def test_a_tick_within_late_after_s_is_on_time(clock, monkeypatch):
+def test_a_real_time_loop_never_goes_a_period_without_a_sleep(clock, monkeypatch):
+    """Ticks of 0.3-1.2 ms of work: the on-time ones sleep to their deadline and do not breathe; a tick that starts
+    after a period without a sleep (late or not) breathes first. No stretch without a sleep is longer than a period
+    and the tick that noticed it."""
     pacer = _pacer(monkeypatch, fifo=True)
+    for work_ns in [900_000, 1_150_000, 1_100_000, 1_200_000, 300_000, 900_000, 1_050_000, 400_000] * 20:
+        clock.work(work_ns)
+        pacer.wait()
+    awake = [start - end for (_, end), (start, _) in zip(clock.naps[:-1], clock.naps[1:], strict=True)]
+    assert pacer.breaths > 0 and clock.sleeps_ns.count(50_000) == pacer.breaths
+    assert max(awake) <= PERIOD_NS + 1_200_000
+    on_time = _pacer(monkeypatch, fifo=True)
+    for _ in range(50):
+        clock.work(900_000)
+        on_time.wait()
+    assert on_time.breaths == 0
+
+
+def test_at_normal_priority_it_never_breathes(clock, monkeypatch):
+    pacer = _pacer(monkeypatch, fifo=False)
+    for _ in range(10):
+        clock.work(3_400_000)
+        pacer.wait()
+    assert pacer.breaths == 0 and 50_000 not in clock.sleeps_ns
+
+
+def test_a_tick_within_late_after_s_is_on_time(clock, monkeypatch):
+    pacer = _pacer(monkeypatch, fifo=True, breath_s=0.0)
     clock.work(PERIOD_NS + 200_000)  # 200 us past the deadline: not late (late_after_s 250 us)
     assert pacer.wait() == 200_000 and pacer.late_ticks == 0 and pacer.skipped_ticks == 0
 
