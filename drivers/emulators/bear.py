@@ -530,15 +530,17 @@ class BearBusEmulator:
         with self._lock:
             reply = self.handle(data)
             bulk, self._bulk_seen = self._bulk_seen, False
+            # Decided where the reply is built: one built before the input went on and sent after it (a reply
+            # delay in between) does not carry the bit.
+            first_estop = self._estop_unsent and _carries_estop(reply)
+            if first_estop:
+                self._estop_unsent = False
         # Answered outside the lock: a reply delay (and the write) holds up neither the physics nor a command.
         if reply and self._pty is not None:
             self.reply_delay.wait(arrived)
             self._pty.send(reply)
-            if self._estop_unsent:  # when the host could first know: the reply that carries the bit leaves
-                with self._lock:
-                    first, self._estop_unsent = self._estop_unsent, False
-                if first:
-                    self._events.add(f"{self.name} first reply with the E-stop bit sent")
+            if first_estop:  # when the host could first know: the reply that carries the bit leaves
+                self._events.add(f"{self.name} first reply with the E-stop bit sent")
         if bulk and self.on_bulk is not None:
             with self._lock:
                 self.on_bulk()
@@ -704,6 +706,17 @@ class BearBusEmulator:
     def _rekey(self) -> None:
         if any(bear.id != key for key, bear in self._bears.items()):
             self._bears = {bear.id: bear for bear in self._bears.values()}
+
+
+def _carries_estop(reply: bytes) -> bool:
+    """Whether a status packet in `reply` (the emulator's own, back to back) has the E-stop bit in its error byte; a
+    spoiled one is read as far as it goes."""
+    at = 0
+    while at + 5 <= len(reply) and reply[at:at + 2] == HEADER:
+        if reply[at + 4] & _ESTOP:
+            return True
+        at += 4 + reply[at + 3]
+    return False
 
 
 def _status_packet(device_id: int, error: int, data: bytes) -> bytes:

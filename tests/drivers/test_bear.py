@@ -757,3 +757,26 @@ def test_the_first_reply_that_carries_the_estop_bit_is_logged_when_it_leaves():
         bus.bulk_cycle([1, 2], None)
         assert [text for _, text in emu.drain_events() if "E-stop bit" in text] == [
             "bear first reply with the E-stop bit sent"]
+
+
+def test_a_reply_built_before_the_press_and_sent_after_it_is_not_the_one_that_carries_the_bit():
+    """With a reply delay, the press can fall between a request's arrival and its reply leaving: that reply was built
+    without bit 3 (the host reads none in it), so the first one that carries the bit is the next request's."""
+    with BearBusEmulator([1, 2]) as emu, BearBus(emu.path, reply_timeout_s=1.0) as bus:
+        emu.set_reply_delay(0.1)  # the longest the emulator takes
+        emu.drain_events()
+        replies: list = []
+        in_flight = threading.Thread(target=lambda: replies.append(bus.bulk_cycle([1, 2], None)))
+        in_flight.start()
+        deadline = time.monotonic() + 5.0
+        while emu.requests["BULK_COMM"] == 0 and time.monotonic() < deadline:
+            time.sleep(0.001)  # until the request is in the emulator's hands, waiting out its delay
+        emu.set_estop(True)
+        in_flight.join()
+        assert replies[0].estop_ids() == ()  # built before the press
+        asked = time.monotonic()
+        assert bus.bulk_cycle([1, 2], None).estop_ids() == (1, 2)
+        received = time.monotonic()
+        bus.bulk_cycle([1, 2], None)  # the emulator has logged the one before by the time it answers this one
+        sent = [stamp for stamp, text in emu.drain_events() if text == "bear first reply with the E-stop bit sent"]
+        assert len(sent) == 1 and asked + 0.1 <= sent[0] <= received
