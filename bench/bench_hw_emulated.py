@@ -58,6 +58,7 @@ from bruce_hw.hw import make_hw_backend
 from runtime.loop.run import run_session
 
 BULK_RATE_GOAL_HZ = 990.0
+EXCHANGE_LATE = " ms after "  # the BEAR emulator's events for a late request or reply (drivers/emulators/bear.py)
 ESTOP_SENT = "first reply with the E-stop bit sent"  # the BEAR emulator's event (drivers/emulators/bear.py)
 TRIP_LOOKBACK_S = 0.06  # a machine stall this close before a trip explains it (the data-age bound is 8 ms)
 CONDITIONS = {  # the link conditions of the series: bruce-emulate options
@@ -110,6 +111,10 @@ def session(emulator: EmulatorProcess, seconds: float, cmd: str | None, override
                         "before_trip": witness.between(damped[0] - TRIP_LOOKBACK_S, damped[0]) if damped else []}
     for key in ("stalls", "before_trip"):
         stats["witness"][key] = [(t - started, ms) for t, ms in stats["witness"][key]]
+    # The emulated BEARs' own view of the exchanges before the trip: requests that came late, replies that left late
+    stats["exchanges_before_trip"] = [] if not damped else [
+        (t - damped[0], text.split(" ", 1)[1]) for t, text in emulator.events()
+        if damped[0] - TRIP_LOOKBACK_S <= t <= damped[0] and EXCHANGE_LATE in text]
     return stats
 
 
@@ -171,6 +176,9 @@ def report(name: str, stats: dict, emulator: EmulatorProcess, no_delay: bool) ->
     if tripped and seen["damped_at"] is not None:
         near = ", ".join(f"{ms:.1f} ms at {1e3 * (t - seen['damped_at']):+.0f} ms" for t, ms in seen["before_trip"])
         print(f"     in the {1e3 * TRIP_LOOKBACK_S:.0f} ms before the emulator saw damping: {near or 'none'}")
+        late = "; ".join(f"{text} at {1e3 * t:+.1f} ms" for t, text in stats["exchanges_before_trip"])
+        print(f"     the emulated BEARs in those {1e3 * TRIP_LOOKBACK_S:.0f} ms: "
+              f"{late or 'every request and reply on time'}")
     print(f"     data age p50/p99/max {us(stats['data_age_us']['p50'])}/{us(stats['data_age_us']['p99'])}/"
           f"{us(stats['data_age_us']['max'])} µs; base height at the end {plant['base_height']:.3f} m (nominal "
           f"{plant['nominal_base_height']:.3f} m)")

@@ -62,6 +62,13 @@ _INSTRUCTION_NAMES = {int(i): i.name for i in Instruction}
 CORRUPTIONS = ("checksum", "truncate", "garbage", "foreign", "drop")
 LOSS_CORRUPTIONS = ("checksum", "truncate", "garbage")  # what set_reply_loss's `corrupt` does, drawn evenly
 MAX_EVENTS = 10_000
+# An exchange this much off its course is logged (bench/bench_hw_emulated.py prints those before a trip): a request
+# this long after the BEARs last answered (a bulk cycle's longest wait is its 3-ms reply timeout), or a reply this
+# long after it was due (the request's arrival plus any reply delay): the host's request late to arrive, or the
+# BEARs late to answer it.
+LATE_REQUEST_S = 0.004
+LATE_REPLY_S = 0.001
+HOST_AWAY_S = 1.0  # a longer pause between requests is a host not running its loop (between runs): not logged
 
 # Power-on values. Gains and limits are BRUCE-OP v0.0.7's; the rest are plausible choices.
 DEFAULT_CONFIG: dict[str, int | float] = {
@@ -306,6 +313,7 @@ class BearBusEmulator:
         self.reply_losses: Counter[str] = Counter()  # set_reply_loss: "drop", "checksum", "truncate", "garbage"
         self.reply_delay = ReplyDelay()  # set_reply_delay: how late the answers start
         self._estop_unsent = False  # the E-stop input went on, and no reply has carried its bit yet
+        self._answered: float | None = None  # when the BEARs last answered (or took a request that gets no reply)
 
     # -- lifecycle --
     def start(self) -> BearBusEmulator:
@@ -527,6 +535,10 @@ class BearBusEmulator:
     # -- the wire --
     def _on_bytes(self, data: bytes) -> None:
         arrived = time.monotonic()
+        if self._answered is not None and LATE_REQUEST_S < arrived - self._answered <= HOST_AWAY_S:
+            self._events.add(f"{self.name} request {1e3 * (arrived - self._answered):.1f} ms after the last "
+                             "answer", arrived)
+        self._answered = arrived
         with self._lock:
             reply = self.handle(data)
             bulk, self._bulk_seen = self._bulk_seen, False
@@ -537,8 +549,12 @@ class BearBusEmulator:
                 self._estop_unsent = False
         # Answered outside the lock: a reply delay (and the write) holds up neither the physics nor a command.
         if reply and self._pty is not None:
-            self.reply_delay.wait(arrived)
+            due = self.reply_delay.wait(arrived)
             self._pty.send(reply)
+            self._answered = time.monotonic()
+            late = self._answered - due
+            if late > LATE_REPLY_S:
+                self._events.add(f"{self.name} reply {1e3 * late:.1f} ms after it was due", due)
             if first_estop:  # when the host could first know: the reply that carries the bit leaves
                 self._events.add(f"{self.name} first reply with the E-stop bit sent")
         if bulk and self.on_bulk is not None:

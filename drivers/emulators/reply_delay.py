@@ -70,10 +70,14 @@ class ReplyDelay:
                 return self.fixed + self.jitter * self._rng.random()
             return self.fixed
 
-    def wait(self, since: float) -> None:
-        """Wait until one drawn delay after `since` (time.monotonic(), e.g. when the request arrived)."""
+    def wait(self, since: float) -> float:
+        """Wait until one drawn delay after `since` (time.monotonic(), e.g. when the request arrived); returns that
+        moment (`since` without a delay)."""
         if self.fixed > 0.0 or self.jitter > 0.0:
-            wait_until(since + self.draw())
+            due = since + self.draw()
+            wait_until(due)
+            return due
+        return since
 
     def describe(self) -> list[float]:
         """[fixed, jitter] in seconds, for a status line."""

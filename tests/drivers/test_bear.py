@@ -780,3 +780,26 @@ def test_a_reply_built_before_the_press_and_sent_after_it_is_not_the_one_that_ca
         bus.bulk_cycle([1, 2], None)  # the emulator has logged the one before by the time it answers this one
         sent = [stamp for stamp, text in emu.drain_events() if text == "bear first reply with the E-stop bit sent"]
         assert len(sent) == 1 and asked + 0.1 <= sent[0] <= received
+
+
+def test_the_emulator_logs_a_request_that_came_late_and_a_reply_that_left_late():
+    """What the emulated BEARs saw of an exchange gone wrong (bench_hw_emulated prints them before a trip): a request
+    more than 4 ms after they last answered (not a host away for more than a second), a reply more than 1 ms after it
+    was due (and the request after that late reply is not late)."""
+    with BearBusEmulator([1, 2]) as emu, BearBus(emu.path, reply_timeout_s=0.5) as bus:
+        bus.bulk_cycle([1, 2], None)
+        time.sleep(0.02)
+        bus.bulk_cycle([1, 2], None)
+        time.sleep(1.1)
+        bus.bulk_cycle([1, 2], None)
+        send = emu._pty.send
+        emu._pty.send = lambda data: (time.sleep(0.005), send(data))  # the BEARs' thread held 5 ms before it writes
+        bus.bulk_cycle([1, 2], None)
+        emu._pty.send = send
+        bus.bulk_cycle([1, 2], None)  # the emulator has logged the one before by the time it answers this one
+        late = [text for _, text in emu.drain_events() if " ms after " in text]
+        assert len(late) == 2, late
+        gap = float(late[0].split()[2])
+        assert late[0].startswith("bear request ") and late[0].endswith("ms after the last answer") and gap >= 20
+        assert late[1].startswith("bear reply ") and late[1].endswith("ms after it was due")
+        assert float(late[1].split()[2]) >= 5
