@@ -9,7 +9,10 @@
    Goals (issue #19): no trip; >= 990 bulk cycles/s with no delay configured. Beside each run, a stall witness
    (bench/stall_witness.py: SCHED_FIFO 90 on every CPU) reports the machine's own stalls, and for a run that
    tripped, those in the 60 ms before the emulator saw damping: on a virtual machine the hypervisor stops virtual
-   CPUs for 3-40 ms at times, which no scheduling inside it can prevent and the data-age bound must trip on.
+   CPUs for 3-40 ms at times, which no scheduling inside it can prevent and the data-age bound must trip on. Beside
+   them, what the emulated BEARs logged in those 60 ms: a request that came more than 4 ms after they last answered
+   (the host's request late: not sent, or held in the kernel) or a reply that left more than 1 ms after it was due
+   (the emulator late); neither means the replies left on time and the host did not get them in time.
 2. Faults, `--fault-trials N` each (in this process, through runtime.loop.run.run_session): BEAR IDs 3 and 4 silenced,
    the E-stop input, the IMU stream stopped, the leg bus unplugged; time from the fault (the emulator's reply stamp,
    system monotonic clock) to the hw backend entering damping. Goals: silence, IMU stop, unplug <= 10 ms;

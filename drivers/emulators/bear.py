@@ -512,7 +512,10 @@ class BearBusEmulator:
         (`bear 3 torque_enable 1 -> 3 (watchdog: 51.2 ms without a packet)`, `(host write)`, `(e-stop input)`,
         `(fault: joint_limit)`, `(power cycle)`, ...); a watchdog_timeout taking effect; a config write ignored
         because torque is enabled; unplug / plug; reply loss and reply delay settings; the first reply that carries
-        the E-stop bit after the input went on (`bear first reply with the E-stop bit sent`). "bear" is `name`."""
+        the E-stop bit after the input went on (`bear first reply with the E-stop bit sent`); a request more than
+        LATE_REQUEST_S after the BEARs last answered (`bear request 7.1 ms after the last answer`, stamped when it
+        came) and a reply more than LATE_REPLY_S after it was due (`bear reply 2.3 ms after it was due`, stamped when
+        it was due). "bear" is `name`."""
         return self._events.drain()
 
     @property
