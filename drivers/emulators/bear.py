@@ -515,7 +515,7 @@ class BearBusEmulator:
         the E-stop bit after the input went on (`bear first reply with the E-stop bit sent`); a request more than
         LATE_REQUEST_S after the BEARs last answered (`bear request 7.1 ms after the last answer`, stamped when it
         came) and a reply more than LATE_REPLY_S after it was due (`bear reply 2.3 ms after it was due`, stamped when
-        it was due). "bear" is `name`."""
+        it left). "bear" is `name`."""
         return self._events.drain()
 
     @property
@@ -557,7 +557,8 @@ class BearBusEmulator:
             self._answered = time.monotonic()
             late = self._answered - due
             if late > LATE_REPLY_S:
-                self._events.add(f"{self.name} reply {1e3 * late:.1f} ms after it was due", due)
+                # stamped when it left, as it is logged: the log stays in time order
+                self._events.add(f"{self.name} reply {1e3 * late:.1f} ms after it was due", self._answered)
             if first_estop:  # when the host could first know: the reply that carries the bit leaves
                 self._events.add(f"{self.name} first reply with the E-stop bit sent")
         if bulk and self.on_bulk is not None:
