@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.bear_codec import checksum, encode_status
+from drivers.bear_codec import StatusParser, checksum, encode_status
 from drivers.bear_registers import (
     BROADCAST_ID,
     CONFIG_BY_ADDRESS,
@@ -547,20 +547,21 @@ class BearBusEmulator:
             bulk, self._bulk_seen = self._bulk_seen, False
             # Decided where the reply is built: one built before the input went on and sent after it (a reply
             # delay in between) does not carry the bit.
-            first_estop = self._estop_unsent and _carries_estop(reply)
+            first_estop = self._estop_unsent and any(packet.error & _ESTOP for packet in StatusParser().feed(reply))
             if first_estop:
                 self._estop_unsent = False
         # Answered outside the lock: a reply delay (and the write) holds up neither the physics nor a command.
         if reply and self._pty is not None:
             due = self.reply_delay.wait(arrived)
+            # Logged as the reply leaves, before its write: stamped then, so the host cannot have it before its
+            # stamp, and the log stays in time order.
+            leaving = time.monotonic()
+            if leaving - due > LATE_REPLY_S:
+                self._events.add(f"{self.name} reply {1e3 * (leaving - due):.1f} ms after it was due", leaving)
+            if first_estop:  # when the host could first know: the reply that carries the bit leaves
+                self._events.add(f"{self.name} first reply with the E-stop bit sent", leaving)
             self._pty.send(reply)
             self._answered = time.monotonic()
-            late = self._answered - due
-            if late > LATE_REPLY_S:
-                # stamped when it left, as it is logged: the log stays in time order
-                self._events.add(f"{self.name} reply {1e3 * late:.1f} ms after it was due", self._answered)
-            if first_estop:  # when the host could first know: the reply that carries the bit leaves
-                self._events.add(f"{self.name} first reply with the E-stop bit sent")
         if bulk and self.on_bulk is not None:
             with self._lock:
                 self.on_bulk()
@@ -726,17 +727,6 @@ class BearBusEmulator:
     def _rekey(self) -> None:
         if any(bear.id != key for key, bear in self._bears.items()):
             self._bears = {bear.id: bear for bear in self._bears.values()}
-
-
-def _carries_estop(reply: bytes) -> bool:
-    """Whether a status packet in `reply` (the emulator's own, back to back) has the E-stop bit in its error byte; a
-    spoiled one is read as far as it goes."""
-    at = 0
-    while at + 5 <= len(reply) and reply[at:at + 2] == HEADER:
-        if reply[at + 4] & _ESTOP:
-            return True
-        at += 4 + reply[at + 3]
-    return False
 
 
 def _status_packet(device_id: int, error: int, data: bytes) -> bytes:

@@ -792,10 +792,10 @@ def test_the_emulator_logs_a_request_that_came_late_and_a_reply_that_left_late()
         bus.bulk_cycle([1, 2], None)
         time.sleep(1.1)
         bus.bulk_cycle([1, 2], None)
-        send = emu._pty.send
-        emu._pty.send = lambda data: (time.sleep(0.005), send(data))  # the BEARs' thread held 5 ms before it writes
+        wait = emu.reply_delay.wait
+        emu.reply_delay.wait = lambda since: (wait(since), time.sleep(0.005))[0]  # the BEARs' thread held 5 ms when due
         bus.bulk_cycle([1, 2], None)
-        emu._pty.send = send
+        emu.reply_delay.wait = wait
         bus.bulk_cycle([1, 2], None)  # the emulator has logged the one before by the time it answers this one
         late = [text for _, text in emu.drain_events() if " ms after " in text]
         assert len(late) == 2, late
