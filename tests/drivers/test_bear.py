@@ -6,6 +6,7 @@ from __future__ import annotations
 import struct
 import threading
 import time
+import types
 
 import numpy as np
 import pytest
@@ -35,6 +36,7 @@ from drivers.bear_registers import (
     error_flags,
     status_register,
 )
+from drivers.emulators import bear as bear_emulator
 from drivers.emulators.bear import BearBusEmulator, EventLog
 from drivers.errors import BusTimeout, DeviceFault, DriverError
 
@@ -759,47 +761,67 @@ def test_the_first_reply_that_carries_the_estop_bit_is_logged_when_it_leaves():
             "bear first reply with the E-stop bit sent"]
 
 
-def test_a_reply_built_before_the_press_and_sent_after_it_is_not_the_one_that_carries_the_bit():
+class _WireClock:
+    """The BEAR emulator's wire handler driven by hand on a virtual clock: requests go in as bytes (`_on_bytes`), the
+    replies it writes are kept, and nothing waits on the wall clock."""
+
+    def __init__(self, monkeypatch, ids=(1, 2)):
+        self.now = 100.0
+        monkeypatch.setattr(bear_emulator, "time", types.SimpleNamespace(monotonic=lambda: self.now))
+        self.emu = BearBusEmulator(list(ids))
+        self.sent: list[tuple[float, bytes]] = []
+        self.emu._pty = types.SimpleNamespace(send=lambda data: self.sent.append((self.now, data)))
+        self.request = encode_bulk(list(ids), [status_register("present_position")])
+
+    def exchange(self, after_s: float = 0.0) -> bytes:
+        self.now += after_s
+        self.emu._on_bytes(self.request)
+        return self.sent[-1][1]
+
+
+def test_a_reply_built_before_the_press_and_sent_after_it_is_not_the_one_that_carries_the_bit(monkeypatch):
     """With a reply delay, the press can fall between a request's arrival and its reply leaving: that reply was built
     without bit 3 (the host reads none in it), so the first one that carries the bit is the next request's."""
-    with BearBusEmulator([1, 2]) as emu, BearBus(emu.path, reply_timeout_s=1.0) as bus:
-        emu.set_reply_delay(0.1)  # the longest the emulator takes
-        emu.drain_events()
-        replies: list = []
-        in_flight = threading.Thread(target=lambda: replies.append(bus.bulk_cycle([1, 2], None)))
-        in_flight.start()
-        deadline = time.monotonic() + 5.0
-        while emu.requests["BULK_COMM"] == 0 and time.monotonic() < deadline:
-            time.sleep(0.001)  # until the request is in the emulator's hands, waiting out its delay
-        emu.set_estop(True)
-        in_flight.join()
-        assert replies[0].estop_ids() == ()  # built before the press
-        asked = time.monotonic()
-        assert bus.bulk_cycle([1, 2], None).estop_ids() == (1, 2)
-        received = time.monotonic()
-        bus.bulk_cycle([1, 2], None)  # the emulator has logged the one before by the time it answers this one
-        sent = [stamp for stamp, text in emu.drain_events() if text == "bear first reply with the E-stop bit sent"]
-        assert len(sent) == 1 and asked + 0.1 <= sent[0] <= received
+    wire = _WireClock(monkeypatch)
+    emu, delay = wire.emu, wire.emu.reply_delay
+
+    def pressed_in_the_delay(since: float) -> float:
+        emu.set_estop(True)  # the E-stop input goes on while the reply waits out its 2 ms
+        wire.now = since + 0.002
+        return wire.now
+
+    delay.wait = pressed_in_the_delay
+    before = wire.exchange()
+    assert not any(p.error & 0x08 for p in StatusParser().feed(before))  # built before the press: no bit
+    assert not [text for _, text in emu.drain_events() if "E-stop bit" in text]
+    delay.wait = lambda since: since
+    after = wire.exchange(0.001)
+    assert all(p.error & 0x08 for p in StatusParser().feed(after))
+    assert emu.drain_events() == [(wire.now, "bear first reply with the E-stop bit sent")]
 
 
-def test_the_emulator_logs_a_request_that_came_late_and_a_reply_that_left_late():
+def test_the_emulator_logs_a_request_that_came_late_and_a_reply_that_left_late(monkeypatch):
     """What the emulated BEARs saw of an exchange gone wrong (bench_hw_emulated prints them before a trip): a request
-    more than 4 ms after they last answered (not a host away for more than a second), a reply more than 1 ms after it
-    was due (and the request after that late reply is not late)."""
-    with BearBusEmulator([1, 2]) as emu, BearBus(emu.path, reply_timeout_s=0.5) as bus:
-        bus.bulk_cycle([1, 2], None)
-        time.sleep(0.02)
-        bus.bulk_cycle([1, 2], None)
-        time.sleep(1.1)
-        bus.bulk_cycle([1, 2], None)
-        wait = emu.reply_delay.wait
-        emu.reply_delay.wait = lambda since: (wait(since), time.sleep(0.005))[0]  # the BEARs' thread held 5 ms when due
-        bus.bulk_cycle([1, 2], None)
-        emu.reply_delay.wait = wait
-        bus.bulk_cycle([1, 2], None)  # the emulator has logged the one before by the time it answers this one
-        late = [text for _, text in emu.drain_events() if " ms after " in text]
-        assert len(late) == 2, late
-        gap = float(late[0].split()[2])
-        assert late[0].startswith("bear request ") and late[0].endswith("ms after the last answer") and gap >= 20
-        assert late[1].startswith("bear reply ") and late[1].endswith("ms after it was due")
-        assert float(late[1].split()[2]) >= 5
+    more than 4 ms after they last answered (not one 3 ms after, nor a host away for more than a second), a reply
+    more than 1 ms after it was due (not 0.5 ms), stamped when it left; the request after a late reply is not late."""
+    wire = _WireClock(monkeypatch)
+    emu = wire.emu
+    wire.exchange()
+    wire.exchange(0.003)
+    wire.exchange(0.020)
+    asked = wire.now
+    wire.exchange(1.1)
+
+    def held(since: float, hold: float) -> float:
+        wire.now += hold  # the BEARs' thread held this long after the reply was due
+        return since
+
+    emu.reply_delay.wait = lambda since: held(since, 0.0005)
+    wire.exchange(0.001)
+    emu.reply_delay.wait = lambda since: held(since, 0.005)
+    wire.exchange(0.001)
+    left = wire.sent[-1][0]
+    emu.reply_delay.wait = lambda since: since
+    wire.exchange(0.001)
+    assert emu.drain_events() == [(asked, "bear request 20.0 ms after the last answer"),
+                                  (left, "bear reply 5.0 ms after it was due")]
