@@ -2,11 +2,11 @@
 temperatures and voltages ride in the bulk cycle's own request, never in one of their own."""
 
 import logging
-import select
 from collections import Counter
 
 import numpy as np
 import pytest
+from support.ports import wait_readable
 
 from bruce_hw.bear_legs import MONITOR_EVERY_TICKS, BearLegs
 from bruce_hw.config import load_config
@@ -80,7 +80,7 @@ def test_replies_taken_late_are_samples_stamped_with_their_request_and_not_lost(
     returned = time.monotonic()
     assert (lost.stamps < asked).all() and legs.loss.total.sum() == 10 and lost.estop_ids == ()
     # until the emulator has answered (all ten replies in one write; the harvest's read waits for their hand-over)
-    assert select.select([legs.bus._serial.fileno()], [], [], 5.0)[0], "the delayed replies did not come"
+    wait_readable(legs.bus._serial)
     emulator.silence(IDS)  # the next cycle's own request gets nothing: what it has came late
     reading = legs.cycle(None)
     assert legs.late_replies == 10 and legs.loss.total.sum() == 10  # this cycle's ten, not the last one's

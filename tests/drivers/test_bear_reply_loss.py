@@ -1,12 +1,12 @@
 """The BEAR driver's tick under lost and corrupted replies: the partial bulk cycle (no retry, the missing rows
 marked), and the parser refusing a cut reply that the next reply's bytes complete with a matching checksum."""
 
-import select
 import struct
 import time
 
 import numpy as np
 import pytest
+from support.ports import wait_readable
 
 from drivers.bear import MAX_STALL_CREDIT_S, BearBus
 from drivers.bear_codec import StatusParser, encode_status, reply_length
@@ -191,12 +191,6 @@ def test_a_read_pass_the_host_holds_counts_from_the_end_of_its_slice_while_it_la
 
 # -- replies that come after their deadline -------------------------------------------------------------------------
 REPLY_BYTES = 4 + reply_length(3)  # one BEAR's reply to the tick's bulk cycle
-
-
-def wait_readable(serial_port, timeout_s=5.0):
-    """Until the emulator has answered (it writes a request's replies at once; the harvest's read then waits in the
-    kernel for whatever of them is still being handed over), however slow a busy machine runs its thread."""
-    assert select.select([serial_port.fileno()], [], [], timeout_s)[0], "the delayed replies did not come"
 
 
 def test_replies_that_come_after_the_deadline_are_taken_before_the_next_request(emulator):
