@@ -366,7 +366,7 @@ class HwBackend(Backend):
             raise self._fail(self.arms.error)
         try:
             sense, stamp = self.sense.read()
-            if self._age(stamp) + self.config.dt > self.max_sensor_age:
+            if self._stale_at_next_tick(self._age(stamp)):
                 sense, stamp = self._newer_sense_sample(stamp)
         except BusTimeout as exc:
             raise self._fail(f"sense board {exc}") from exc
@@ -381,11 +381,8 @@ class HwBackend(Backend):
             if reading.estop_ids and state is LifecycleState.ACTIVE:
                 self.fault(f"{self.legs.name}: E-stop (error bit 3) on ID(s) {ids_text(reading.estop_ids)}")
             elif not reading.estop_ids:
-                # Judged one tick ahead, as the legs' silence (bruce_hw.leg_bus.silence): a sample that will be too
-                # old when the next tick looks at it is a stopped stream now, so damping falls within the bound's
-                # reach of the last packet instead of a tick (and a wait for a newer sample) after it.
                 age = self._age(imu.stamp)
-                if age + self.config.dt > self.max_sensor_age:
+                if self._stale_at_next_tick(age):
                     cause = (f"sense board {self.sense_port}: IMU stream stopped: last packet {1e3 * age:.1f} ms "
                              f"ago ({1e3 * (age + self.config.dt):.1f} ms at the next tick > safety.max_sensor_age_s "
                              f"{1e3 * self.max_sensor_age:.1f} ms)")
@@ -400,6 +397,12 @@ class HwBackend(Backend):
 
     def joint_stalled_between(self, t0: float, t1: float) -> float:
         return self._joint_stalled(t0, t1)
+
+    def _stale_at_next_tick(self, age: float) -> bool:
+        """An IMU sample this old is a stopped stream: judged one tick ahead, as the legs' silence
+        (bruce_hw.leg_bus.silence), so damping falls within the bound's reach of the last packet instead of a tick
+        (and a wait for a newer sample) after it."""
+        return age + self.config.dt > self.max_sensor_age
 
     def _age(self, stamp: float) -> float:
         """How long the process has run since `stamp`: its age less the host stalls in between."""
