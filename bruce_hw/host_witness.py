@@ -48,15 +48,20 @@ class StallLog:
         self._stalls: deque[Stall] = deque(maxlen=STALL_LOG)
         self._lock = threading.Lock()
         self._open_since = open_since or (lambda now: None)
-        self.count = 0           # stalls seen since the start (or reset_counts)
+        self.count = 0           # stalls seen since the start (or that began after `reset_counts`)
         self.total_s = 0.0       # their total length
         self.worst_s = 0.0       # the longest
+        self._counted_from = -float("inf")
 
-    def reset_counts(self) -> None:
-        """Count from now on (the backend's activation: stalls during start-up, loading models, are not the run's);
-        the log `stalled_between` reads is kept."""
+    def reset_counts(self, since: float) -> None:
+        """Count the stalls that begin at `since` or later (the backend's activation: stalls during start-up,
+        loading models, are not the run's); the log `stalled_between` reads is kept. A stall that began before it is
+        start-up's, however late it is recorded: the witness records a stall when it wakes, and what kept it from
+        waking just before the loop (the full garbage collection that holds the interpreter lock 20-25 ms here, at
+        normal priority on a CPU the devices' threads may hold) may end only after the activation."""
         with self._lock:
             self.count, self.total_s, self.worst_s = 0, 0.0, 0.0
+            self._counted_from = since
 
     def record(self, start: float, end: float) -> None:
         """A stall from `start` to `end`. What overlaps the stall recorded last extends it rather than counting
@@ -67,13 +72,16 @@ class StallLog:
                 if end <= last.end:
                     return
                 stall = self._stalls[-1] = Stall(last.start, end)
-                self.total_s += end - last.end
+                grown = end - last.end
             else:
                 stall = Stall(start, end)
                 self._stalls.append(stall)
-                self.count += 1
-                self.total_s += stall.length
-            self.worst_s = max(self.worst_s, stall.length)
+                grown = stall.length
+                if stall.start >= self._counted_from:
+                    self.count += 1
+            if stall.start >= self._counted_from:
+                self.total_s += grown
+                self.worst_s = max(self.worst_s, stall.length)
 
     def intervals(self, t0: float, t1: float) -> list[tuple[float, float]]:
         """The parts of [t0, t1] the stalls cover, oldest first: those recorded, and one in progress at `t1`."""

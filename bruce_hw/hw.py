@@ -201,9 +201,10 @@ class HwBackend(Backend):
 
         self._torque = None  # zero goal until the first write
         self._last_read_at = None
-        self.witness.reset_counts()  # the run's stalls: from activation on
+        activated = time.monotonic()
+        self.witness.reset_counts(activated)  # the run's stalls: from activation on
         if self._port_stalls is not None:
-            self._port_stalls.reset_counts()
+            self._port_stalls.reset_counts(activated)
         try:
             self.legs.enable()
         except DriverError as exc:

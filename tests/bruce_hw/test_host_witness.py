@@ -173,10 +173,25 @@ def test_a_stall_beyond_the_bound_trips_the_safety_stage_naming_its_length(confi
 def test_the_counts_restart_at_activation_and_the_log_stays():
     witness = HostWitness()
     witness.record(1.0, 1.030)  # during start-up
-    witness.reset_counts()
+    witness.reset_counts(1.5)
     witness.record(2.0, 2.005)
     assert witness.report() == {"count": 1, "worst_ms": pytest.approx(5.0), "total_ms": pytest.approx(5.0)}
     assert witness.stalled_between(0.0, 3.0) == pytest.approx(0.035)
+
+
+def test_a_stall_that_began_before_activation_is_not_the_runs():
+    """The witness records a stall when it wakes: one that start-up began (the interpreter lock held by the full
+    collection before the loop) and that ends after the activation is recorded then, and is start-up's; what
+    follows it is counted again."""
+    witness = HostWitness()
+    witness.reset_counts(1.5)
+    witness.record(1.48, 1.55)  # held from before the activation
+    witness.record(1.48, 1.56)  # ... seen again, longer
+    assert witness.report() == {"count": 0, "worst_ms": 0.0, "total_ms": 0.0}
+    assert witness.stalled_between(1.5, 1.6) == pytest.approx(0.06)  # still left out of the data's age
+    witness.record(1.6, 1.603)  # after it: the run's
+    witness.record(2.0, 2.004)
+    assert witness.report() == {"count": 2, "worst_ms": pytest.approx(4.0), "total_ms": pytest.approx(7.0)}
 
 
 def test_a_stall_recorded_twice_is_counted_once():
