@@ -9,6 +9,7 @@ code that makes it, and drivers/emulators/bear.py makes the same ones.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import os
 import struct
@@ -131,6 +132,16 @@ class BulkReply:
 
     def flags(self, device_id: int) -> tuple[str, ...]:
         return error_flags(int(self.error[self.ids.index(device_id)]))
+
+    def in_order(self, ids: Sequence[int]) -> BulkReply:
+        """The same answers with rows in the order of `ids` (the same IDs, in another order; `late` as it is)."""
+        ids = tuple(ids)
+        if ids == self.ids:
+            return self
+        row = {device_id: k for k, device_id in enumerate(self.ids)}
+        rows = np.array([row[i] for i in ids])
+        answered = None if self.answered is None else self.answered[rows]
+        return dataclasses.replace(self, ids=ids, values=self.values[rows], error=self.error[rows], answered=answered)
 
     def faulted_ids(self) -> tuple[int, ...]:
         """IDs reporting a fault bit (2-6; not the warnings)."""

@@ -88,3 +88,29 @@ def test_replies_taken_late_are_samples_stamped_with_their_request_and_not_lost(
     np.testing.assert_allclose(reading.position, [0.05 * i for i in IDS], rtol=1e-6)
     assert reading.estop_ids == (6,)
     assert legs.link_report()["replies_late"] == 10
+
+
+def test_the_request_order_turns_and_every_actuator_keeps_its_own_sample_and_goal(legs):
+    """The bulk request starts one ID later every cycle, so that a lost last reply (which alone costs the driver's
+    reply gap) falls on each ID in turn; the replies, in that order, land in their own actuator's row, and each
+    BEAR is written its own goal."""
+    legs, emulator = legs
+    positions, velocities = [0.1 * i for i in IDS], [0.01 * i for i in IDS]
+    emulator.set_measured_many(IDS, positions, velocities, [0.0] * len(IDS))
+    orders = []
+    bulk_cycle = legs.bus.bulk_cycle
+
+    def recorded(ids, *args, **kwargs):
+        orders.append(tuple(ids))
+        return bulk_cycle(ids, *args, **kwargs)
+
+    legs.bus.bulk_cycle = recorded
+    goal_iq = 0.5 * np.arange(1, len(IDS) + 1)  # A: one per actuator, all different
+    for _ in range(len(IDS)):
+        reading = legs.cycle(goal_iq * legs.kt)
+        assert reading.problem is None
+        np.testing.assert_allclose(reading.position, positions, rtol=1e-6)
+        np.testing.assert_allclose(reading.velocity, velocities, rtol=1e-6)
+        np.testing.assert_allclose(emulator.commands(IDS)["goal_iq"], goal_iq, rtol=1e-6)
+    assert all(sorted(order) == IDS for order in orders)
+    assert [order[-1] for order in orders] == IDS[-1:] + IDS[:-1]  # each ID last once in ten cycles

@@ -187,6 +187,24 @@ def test_emulator_bulk_replies_in_request_order():
     assert emu.stats.rejected["bulk_length"] == 1
 
 
+def test_a_bulk_reply_in_another_id_order_keeps_each_ids_row():
+    from drivers.bear import BulkReply
+
+    late = BulkReply("/dev/x", (3,), ("present_position",), np.array([[9.0]]), np.array([0], np.uint8))
+    reply = BulkReply("/dev/x", (3, 1, 2), ("present_position", "present_velocity"),
+                      np.array([[3.0, 30.0], [1.0, 10.0], [np.nan, np.nan]]), np.array([8, 0, 0], np.uint8),
+                      np.array([True, True, False]), 12.5, late)
+    ordered = reply.in_order((1, 2, 3))
+    assert ordered.ids == (1, 2, 3) and ordered.registers == reply.registers
+    assert ordered.position[[0, 2]].tolist() == [1.0, 3.0] and np.isnan(ordered.position[1])
+    assert ordered.velocity[[0, 2]].tolist() == [10.0, 30.0]
+    assert ordered.answered.tolist() == [True, False, True] and ordered.lost_ids == (2,)
+    assert ordered.estop_ids() == (3,) and ordered.sent_at == 12.5 and ordered.late is late
+    assert reply.in_order((3, 1, 2)) is reply
+    assert BulkReply("/dev/x", (2, 1), ("present_position",), np.array([[2.0], [1.0]]),
+                     np.zeros(2, np.uint8)).in_order((1, 2)).answered is None
+
+
 def test_emulator_torque_enable_and_error_semantics():
     emu = BearBusEmulator([1])
     write_torque = lambda v: emu.handle(frame(1, 0x03, b"\x00" + u32(v)))  # noqa: E731
