@@ -4,16 +4,18 @@ The kernel moves a serial port's bytes from the writer to the reader in a worker
 `flush_to_ldisc`, for a USB adapter's replies as for a pseudo-terminal's requests), and the scheduler often wakes it
 on the writer's CPU. A SCHED_FIFO loop on that CPU that runs its ticks back to back keeps it off the CPU until the
 loop sleeps or another CPU takes it over. Traced on the hw path (docs/results/timing.md): a request waited 7.1 ms so,
-and every BEAR looked silent. `runtime.loop.pacing.Pacer` sleeps `breath_s` after a period without a sleep; this
-bench measures the request's delivery with the three threads of the hw path apart and nothing else:
+and every BEAR looked silent. `runtime.loop.pacing.Pacer` sleeps `breath_s` after a period without a sleep, and, where
+the loop calls `breathe` halfway through a tick, inside a tick that has gone `mid_tick_s` without one; this bench
+measures the request's delivery with the three threads of the hw path apart and nothing else:
 
 - the loop: the real `Pacer` (1 kHz) on CPU 1 at SCHED_FIFO 50, whose ticks spin for `--heavy-ms` (more than a
   period: behind, as on a slowed virtual CPU) for 10 ticks, then 0.3 ms for 20 ticks, over and over;
 - the bus thread: a process on CPU 1 at SCHED_FIFO 51 writing an 8-byte stamp into a pseudo-terminal every 1 ms;
 - the device: a process on CPU 0 at SCHED_FIFO 40 reading the other side, noting how late each stamp came.
 
-Per setting (`breath_s` 50 µs, the default, against 0), alternated `--rounds` times: the delivery delay p50 / p99 /
-max and the stamps later than 1 ms and than 3 ms (a bulk cycle's reply timeout). Root (SCHED_FIFO) and two CPUs.
+Per setting (no breath; `breath_s` 50 µs, the default, between ticks; and inside them too), alternated `--rounds`
+times: the delivery delay p50 / p99 / max and the stamps later than 1 ms and than 3 ms (a bulk cycle's reply
+timeout). Root (SCHED_FIFO) and two CPUs.
 
     python bench/bench_worker_behind_loop.py [--seconds 5] [--rounds 3] [--heavy-ms 1.3]
 """
@@ -46,14 +48,19 @@ def _spin(ns: int) -> None:
         pass
 
 
-def _loop(seconds: float, heavy_ms: float, breath_s: float, out) -> None:
+def _loop(seconds: float, heavy_ms: float, breath_s: float, inside: bool, out) -> None:
     _realtime(LOOP_CPU, 50)
     pacer = Pacer(0.001, breath_s=breath_s)
     pacer.start()
     end, tick = time.monotonic() + seconds, 0
     while time.monotonic() < end:
         pacer.wait()
-        _spin(round(1e6 * (heavy_ms if tick % 30 < 10 else 0.3)))
+        work = round(1e6 * (heavy_ms if tick % 30 < 10 else 0.3))
+        if inside:  # as runtime/loop/run.py after its costliest section
+            _spin(work // 2)
+            pacer.breathe()
+            work -= work // 2
+        _spin(work)
         tick += 1
     out.put({"ticks": tick, "late": pacer.late_ticks, "breaths": pacer.breaths})
 
@@ -88,7 +95,7 @@ def _device(master: int, seconds: float, out) -> None:
     out.put(delays)
 
 
-def measure(seconds: float, heavy_ms: float, breath_s: float) -> dict:
+def measure(seconds: float, heavy_ms: float, breath_s: float, inside: bool) -> dict:
     ctx = mp.get_context("fork")
     master, slave = os.openpty()
     tty.setraw(slave)  # bytes as written: no echo, no line editing, no newline translation
@@ -97,7 +104,7 @@ def measure(seconds: float, heavy_ms: float, breath_s: float) -> dict:
     device = ctx.Process(target=_device, args=(master, seconds, device_out))
     device.start()
     time.sleep(0.1)
-    procs = [ctx.Process(target=_loop, args=(seconds, heavy_ms, breath_s, loop_out)),
+    procs = [ctx.Process(target=_loop, args=(seconds, heavy_ms, breath_s, inside, loop_out)),
              ctx.Process(target=_writer, args=(path, seconds))]
     for proc in procs:
         proc.start()
@@ -123,9 +130,11 @@ def main() -> None:
     default_breath = Pacer(0.001).breath_ns / 1e9
     print(f"loop ticks of {args.heavy_ms} ms x 10, then 0.3 ms x 20, on CPU {LOOP_CPU}; {args.seconds:g} s a run")
     for round_ in range(1, args.rounds + 1):
-        for breath in (0.0, default_breath):
-            r = measure(args.seconds, args.heavy_ms, breath)
-            print(f"  round {round_}, breath {1e6 * breath:.0f} µs: delivery p50 {r['p50_ms']:.2f} / p99 "
+        for breath, inside in ((0.0, False), (default_breath, False), (default_breath, True)):
+            r = measure(args.seconds, args.heavy_ms, breath, inside)
+            where = "none" if not breath else f"{1e6 * breath:.0f} µs " + ("inside ticks too" if inside else
+                                                                          "between ticks")
+            print(f"  round {round_}, breath {where}: delivery p50 {r['p50_ms']:.2f} / p99 "
                   f"{r['p99_ms']:.2f} / max {r['max_ms']:.2f} ms; of {r['stamps']}, {r['over_1ms']} later than 1 ms, "
                   f"{r['over_3ms']} than {1e3 * LATE_S:g} ms; loop {r['ticks']} ticks, {r['late']} late, "
                   f"{r['breaths']} breaths",

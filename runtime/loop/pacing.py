@@ -16,7 +16,9 @@ which the scheduler often wakes on the loop's CPU. Traced on the hw path (docs/r
 7.2 ms of late ticks back to back while the worker holding the host's request waited on its CPU, and every BEAR
 looked silent. So a real-time loop that has not slept for a whole period sleeps `breath_s` before its next tick
 (counted as `breaths`): the worker's few microseconds run then, at a cost of tens of microseconds to a tick that
-was late anyway.
+was late anyway. One long tick does the same from inside: traced again, a tick of 1.6 ms (the I/O threads
+preempting it) kept a worker woken on the loop's CPU, and the host's request it held, waiting 2.7 ms; so the loop
+calls `breathe` after its costliest section, which breathes once the loop has gone `mid_tick_s` without a sleep.
 """
 
 from __future__ import annotations
@@ -27,8 +29,9 @@ import time
 
 class Pacer:
     def __init__(self, period_s: float, spin_s: float = 200e-6, late_after_s: float = 250e-6,
-                 breath_s: float = 50e-6):
+                 breath_s: float = 50e-6, mid_tick_s: float = 500e-6):
         self.period_ns = round(period_s * 1e9)
+        self.mid_tick_ns = round(mid_tick_s * 1e9)
         self.spin_ns = round(spin_s * 1e9)
         self.late_ns = round(late_after_s * 1e9)
         self.breath_ns = round(breath_s * 1e9)
@@ -46,6 +49,13 @@ class Pacer:
             self.breath_ns = 0  # at normal priority the scheduler shares the CPU by itself
         self.slept_ns = time.monotonic_ns()
         self.deadline_ns = self.slept_ns + self.period_ns
+
+    def breathe(self) -> None:
+        """Inside a tick: a real-time loop that has gone `mid_tick_s` without a sleep sleeps `breath_s` now."""
+        if self.breath_ns and time.monotonic_ns() - self.slept_ns > self.mid_tick_ns:
+            time.sleep(self.breath_ns / 1e9)
+            self.slept_ns = time.monotonic_ns()
+            self.breaths += 1
 
     def wait(self) -> int:
         """Block until this tick's deadline; returns how far past it the tick starts (ns, >= 0)."""

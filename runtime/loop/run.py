@@ -532,6 +532,8 @@ def _loop(backend: Backend, config: RobotConfig, runner: InlineControllerRunner,
                                 "its torque limit)")
                     break
                 a = targets
+            if realtime:
+                pacer.breathe()  # after the costliest section: a long tick lets a worker on its CPU run
             t2, c2 = perf(), cpu()
             tau_star = eq8_torque(a, q, qd, eq8)
             t3, c3 = perf(), cpu()

@@ -160,3 +160,27 @@ def test_the_costliest_tick_is_kept_with_its_sections():
     assert costliest["tick"] == 17 and costliest["cpu_us"] == pytest.approx(9160)
     assert max(costliest["sections_cpu_us"], key=costliest["sections_cpu_us"].get) == "policy"
     assert costliest["sections_cpu_us"]["policy"] == pytest.approx(9000)
+
+
+def test_a_long_tick_breathes_inside_once_it_has_gone_mid_tick_s_without_a_sleep(clock, monkeypatch):
+    """The loop calls `breathe` after its costliest section: a tick that has run 0.5 ms since the loop last slept
+    sleeps 50 us there (a worker on its CPU runs), once; a shorter one does not, and neither does a loop at normal
+    priority."""
+    pacer = _pacer(monkeypatch, fifo=True)
+    clock.work(300_000)
+    pacer.wait()  # sleeps to the deadline
+    clock.sleeps_ns.clear()
+    clock.work(400_000)
+    pacer.breathe()
+    assert clock.sleeps_ns == [] and pacer.breaths == 0
+    clock.work(200_000)
+    pacer.breathe()
+    assert clock.sleeps_ns == [50_000] and pacer.breaths == 1
+    clock.work(300_000)  # 0.3 ms since that breath
+    pacer.breathe()
+    assert pacer.breaths == 1
+    assert pacer.wait() == 0 and pacer.late_ticks == 0  # the tick still ends before its deadline
+    normal = _pacer(monkeypatch, fifo=False)
+    clock.work(3_000_000)
+    normal.breathe()
+    assert normal.breaths == 0
