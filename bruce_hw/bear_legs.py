@@ -269,7 +269,7 @@ class BearLegs:
         # The BEARs answer in request order, and the driver ends a cycle as soon as the last ID has answered; a lost
         # last reply alone costs the reply gap (drivers.bear.REPLY_GAP_S). The order turns by one ID a cycle, so
         # that cost falls on each ID in turn: at a fixed order, three replies of the last ID lost in a row (1 %
-        # loss: about one 30-s run in fifty) aged its sample past safety.max_sensor_age_s.
+        # loss: about one 30-s run in thirty) aged its sample past safety.max_sensor_age_s.
         first = self.cycles % len(self.ids)
         rows = self._rotation[first]
         order = self._orders[first]
