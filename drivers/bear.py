@@ -446,13 +446,17 @@ class BearBus:
         return BulkReply(self.port, answered, tuple(r.name for r in reads), table,
                          np.array([got[i].error for i in answered], dtype=np.uint8), None, sent_at)
 
-    def _take(self, data: bytes, got: dict[int, StatusPacket]) -> None:
-        """The replies in `data` into `got`, the first one per ID (a second is counted as a duplicate)."""
+    def _take(self, data: bytes, got: dict[int, StatusPacket]) -> int | None:
+        """The replies in `data` into `got`, the first one per ID (a second is counted as a duplicate); returns the ID
+        of the last packet in `data`, taken or not (None: none)."""
+        newest = None
         for packet in self._parser.feed(data):
+            newest = packet.id
             if packet.id in got:
                 self.stats.reject("duplicate")
             else:
                 got[packet.id] = packet
+        return newest
 
     def held_since(self, now: float) -> float | None:
         """If the port call in progress (a send, a read pass) has taken longer than it takes by itself, since when
@@ -518,7 +522,7 @@ class BearBus:
                 # rest is lost, so a lost reply costs that gap, not the whole timeout (which covers the bus delay
                 # before the first reply).
                 deadline = min(deadline, now + REPLY_GAP_S + self._wire_s(missing))
-            self._take(chunk, got)
+            newest = self._take(chunk, got)
             # A pass takes at most its allowance unless the host did not run this thread (preempted, a paused VM):
             # the replies that came meanwhile are still on their way through the kernel (the tty's work item was
             # stalled too), so that time is the host's, not the device's, and does not count against the reply (up
@@ -529,8 +533,12 @@ class BearBus:
                 deadline += stalled
                 credit -= stalled
                 self._host_stall(end - stalled, end)
-            if ids[-1] in got:
-                break  # replies come in request order: one still missing before the last is lost, not late
+            if newest == ids[-1]:
+                # Replies come in request order: once the last ID's reply is the newest, one still missing before it
+                # is lost, not late. Not merely once the last ID has answered: the replies to an earlier request that
+                # the kernel held may come first, in that request's order (BearLegs turns it each cycle), and its
+                # first reply may be from this request's last ID.
+                break
         if len(got) < len(ids) and keep_tail:
             return got
         if len(got) < len(ids) and self._parser.pending:

@@ -257,3 +257,35 @@ def test_a_reply_cut_by_the_deadline_is_completed_by_the_bytes_that_come_after_i
         responder.join(1)
         os.close(master)
         os.close(slave)
+
+
+class _ScriptedPort:
+    """A port whose reads return the given chunks, one per read, then nothing."""
+
+    def __init__(self, chunks):
+        self.chunks = list(chunks)
+
+    def reset_input_buffer(self):
+        pass
+
+    def write(self, data):
+        return len(data)
+
+    def read(self, n):
+        return self.chunks.pop(0) if self.chunks else b""
+
+
+def test_an_earlier_requests_replies_in_another_order_do_not_end_the_wait(emulator):
+    """The kernel held the last request and its replies come first, in that request's order (the legs turn it each
+    cycle): this request's last ID answers first among them. That is no sign the rest are lost: the cycle reads on
+    and takes one reply per ID."""
+    order = IDS[1:] + IDS[:1]  # this request: 2..10, then 1
+    earlier = [_reply(i, 0.1 * i, 0.0, 1.0) for i in IDS]  # the earlier one's replies: 1..10
+    with BearBus(emulator.path, reply_timeout_s=0.05) as bus:
+        port, bus._serial = bus._serial, _ScriptedPort([b"".join(earlier[:9]), earlier[9]])
+        try:
+            reply = bus.bulk_cycle(order, None, partial=True)
+        finally:
+            bus._serial = port
+    assert reply.lost_ids == () and reply.ids == tuple(order)
+    np.testing.assert_allclose(reply.in_order(IDS).position, [0.1 * i for i in IDS], rtol=1e-6)
