@@ -266,10 +266,10 @@ class BearLegs:
         the first command) asks again for lost replies and raises BusTimeout for silent IDs."""
         self._monitor_tick += 1
         monitor = MONITOR_REGISTERS if self._monitor_tick >= MONITOR_EVERY_TICKS else ()
-        # The BEARs answer in request order, and the driver ends a cycle as soon as the last ID has answered; a lost
-        # last reply alone costs the reply gap (drivers.bear.REPLY_GAP_S). The order turns by one ID a cycle, so
-        # that cost falls on each ID in turn: at a fixed order, three replies of the last ID lost in a row (1 %
-        # loss: about one 30-s run in thirty) aged its sample past safety.max_sensor_age_s.
+        # The BEARs answer in request order, and the driver ends a cycle once the last ID's reply is in (the newest
+        # taken); a lost last reply alone costs the reply gap (drivers.bear.REPLY_GAP_S). The order turns by one ID
+        # a cycle, so that cost falls on each ID in turn: at a fixed order, three replies of the last ID lost in a
+        # row (1 % loss: about one 30-s run in thirty) aged its sample past safety.max_sensor_age_s.
         first = self.cycles % len(self.ids)
         rows = self._rotation[first]
         order = self._orders[first]

@@ -53,9 +53,14 @@ class Pacer:
     def breathe(self) -> None:
         """Inside a tick: a real-time loop that has gone `mid_tick_s` without a sleep sleeps `breath_s` now."""
         if self.breath_ns and time.monotonic_ns() - self.slept_ns > self.mid_tick_ns:
-            time.sleep(self.breath_ns / 1e9)
-            self.slept_ns = time.monotonic_ns()
-            self.breaths += 1
+            self._breath()
+
+    def _breath(self) -> int:
+        """Sleep `breath_s` (others on the CPU run) and count it; returns the time after it."""
+        time.sleep(self.breath_ns / 1e9)
+        self.slept_ns = time.monotonic_ns()
+        self.breaths += 1
+        return self.slept_ns
 
     def wait(self) -> int:
         """Block until this tick's deadline; returns how far past it the tick starts (ns, >= 0)."""
@@ -68,9 +73,7 @@ class Pacer:
             while (now := time.monotonic_ns()) < self.deadline_ns:
                 time.sleep(0)
         if self.breath_ns and now - self.slept_ns > self.period_ns:  # a period without a sleep: let others run
-            time.sleep(self.breath_ns / 1e9)
-            now = self.slept_ns = time.monotonic_ns()
-            self.breaths += 1
+            now = self._breath()
         behind = now - self.deadline_ns
         if behind > self.late_ns:  # late on arrival, or woken late (the machine did not run us on time)
             self.late_ticks += 1
