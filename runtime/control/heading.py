@@ -44,7 +44,7 @@ class HeadingReference:
         heading = np.where(self.started, self.heading, yaw) + yaw_rate_command * self.dt
         lead = wrap_angle(heading - yaw)
         self.heading = np.where(np.abs(lead) > self.lead_max, yaw + np.copysign(self.lead_max, lead), heading)
-        self.started = np.ones_like(self.started)
+        self.started[...] = True
         return self.heading[()]
 
     def error(self, yaw):

@@ -58,9 +58,9 @@ class ObservationBuilder:
               last_raw_action: np.ndarray | None = None) -> np.ndarray:
         """One robot's observation (size,). Joint arrays in the config's joint order; `last_raw_action` None: the
         last action (a policy whose output is its targets)."""
-        one = (np.reshape(v, (1, -1)) for v in (command, state.joints.q, state.joints.qd, base.linvel, base.angvel,
-                                                base.euler, base.quat, last_action,
-                                                last_action if last_raw_action is None else last_raw_action))
+        one = [np.asarray(v).reshape(1, -1) for v in (command, state.joints.q, state.joints.qd, base.linvel,
+                                                      base.angvel, base.euler, base.quat, last_action,
+                                                      last_action if last_raw_action is None else last_raw_action)]
         return self.observe(*one)[0]
 
     def observe(self, command: np.ndarray, q: np.ndarray, qd: np.ndarray, base_linvel: np.ndarray,
@@ -79,6 +79,7 @@ class ObservationBuilder:
         phase, followed, heading_error = advance_references(self.clock, self.heading_reference,
                                                             command if batched else command[0], yaw)
         return ObservationInputs(
-            phase=np.reshape(phase, -1), command=np.reshape(followed, (-1, 3)), raw_command=command, q=q, qd=qd,
+            phase=np.asarray(phase).reshape(-1), command=followed.reshape(-1, 3), raw_command=command, q=q, qd=qd,
             base_linvel=base_linvel, base_angvel=base_angvel, base_euler=base_euler, base_quat=base_quat,
-            heading_error=np.reshape(heading_error, -1), last_action=last_action, last_raw_action=last_raw_action)
+            heading_error=np.asarray(heading_error).reshape(-1), last_action=last_action,
+            last_raw_action=last_raw_action)

@@ -27,19 +27,19 @@ class _TermSteps:
         self.offset = bool(np.any(term.offset))
         self.scale = bool(np.any(term.scale != 1.0))
 
-    def frame(self, inputs: ObservationInputs) -> np.ndarray:
-        """(N, width): this tick's frame of the term."""
+    def frame(self, inputs: ObservationInputs, batch: int) -> np.ndarray:
+        """(N, width): this tick's frame of the term (N = `batch`)."""
         t = self.term
         x = np.asarray(self.function(inputs))
-        if x.shape != (inputs.batch, t.width):
+        if x.shape != (batch, t.width):
             raise ValueError(f"observation term {t.term!r}: its function returned shape {x.shape}, expected "
-                             f"({inputs.batch}, {t.width})")
+                             f"({batch}, {t.width})")
         if self.order is not None:
             x = x[:, self.order]
         if self.offset:
             x = np.subtract(x, t.offset)
         if t.clip is not None:
-            x = np.clip(x, -t.clip, t.clip)
+            x = np.minimum(np.maximum(x, -t.clip), t.clip)  # np.clip's values, without its Python layer
         if self.scale:
             x = np.multiply(x, t.scale)
         return x
@@ -54,6 +54,8 @@ class SpecTerms:
         self.spec = spec
         self.size = spec.obs_size
         self.steps = [_TermSteps(term, spec) for term in spec.terms]
+        ends = np.cumsum([0] + [t.size for t in spec.terms])
+        self.slices = [slice(int(a), int(b)) for a, b in zip(ends[:-1], ends[1:], strict=True)]  # each term's values
         # (N, history, width) per term with history, newest frame in [:, 0]
         self.frames = [np.zeros((batch, t.history, t.width)) if t.history > 1 else None for t in spec.terms]
         self.started = np.zeros(batch, dtype=bool)
@@ -63,23 +65,25 @@ class SpecTerms:
         self.started[envs] = False
 
     def __call__(self, inputs: ObservationInputs) -> np.ndarray:
-        obs = np.empty((inputs.batch, self.size))
-        start = 0
-        for steps, frames in zip(self.steps, self.frames, strict=True):
-            term = steps.term
-            x = steps.frame(inputs)
+        batch = inputs.batch
+        obs = np.empty((batch, self.size))
+        restart = None  # the robots whose history restarts this tick (looked up at the first term with history)
+        for steps, frames, where in zip(self.steps, self.frames, self.slices, strict=True):
+            x = steps.frame(inputs, batch)
             if frames is not None:
                 frames[:, 1:] = frames[:, :-1]
                 frames[:, 0] = x
-                fresh = ~self.started
-                if fresh.any():
-                    frames[fresh] = x[fresh, None, :]
-                x = (frames if term.newest_first else frames[:, ::-1]).reshape(len(x), term.size)
-            obs[:, start:start + term.size] = x
-            start += term.size
+                if restart is None:
+                    restart = np.flatnonzero(~self.started)
+                if len(restart):
+                    frames[restart] = x[restart, None, :]
+                x = (frames if steps.term.newest_first else frames[:, ::-1]).reshape(batch, steps.term.size)
+            obs[:, where] = x
         self.started[:] = True
-        if self.spec.obs_clip is not None:
-            np.clip(obs, -self.spec.obs_clip, self.spec.obs_clip, out=obs)
+        clip = self.spec.obs_clip
+        if clip is not None:  # np.clip's values, without its Python layer
+            np.maximum(obs, -clip, out=obs)
+            np.minimum(obs, clip, out=obs)
         return obs
 
     def get_state(self) -> dict[str, Any]:

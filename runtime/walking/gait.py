@@ -88,7 +88,9 @@ class GaitClock:
         toward `command` (vx, vy, yaw rate) at the bounded acceleration, and the cadence with it."""
         cycles = self.cycles
         limit = COMMAND_ACCELERATION * self.dt
-        self.command = self.command + np.clip(np.asarray(command, dtype=float) - self.command, -limit, limit)
+        # clip(x, -l, l) as max then min: the same values, without np.clip's Python layer (the policy's tick)
+        step = np.minimum(np.maximum(np.asarray(command, dtype=float) - self.command, -limit), limit)
+        self.command = self.command + step
         self.period = np.interp(self.command[..., 0], *self._points)
         self.cycles = cycles + self.dt / self.period
         return cycles[()]
