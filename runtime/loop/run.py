@@ -51,6 +51,7 @@ from runtime.loop.safety import SafetyStage, SafetyState
 from runtime.transfer.gap_monitor import GapMonitor
 from runtime.transfer.interface import TransferScheme
 from runtime.transfer.schemes import build_scheme
+from runtime.transfer.shadow_stepper import InlineShadowStepper
 from runtime.transfer.stage import settings_for
 
 AT_REST_QD = 0.05            # rad/s: the damping hold ends early once every joint is this slow ...
@@ -133,6 +134,10 @@ class RunSummary:
                          f"reading; {runner['calls']} calls, CPU p50 {cpu.get('p50') or 0:.0f} / p99 "
                          f"{cpu.get('p99') or 0:.0f} µs each ({inside} the tick's); {runner['late_ticks']} ticks "
                          f"waited for targets due (worst {runner['worst_late_ticks']} ticks late)")
+        shadow = self.scheme_report.get("shadow")
+        if shadow and shadow["steps_on"] != InlineShadowStepper.where:
+            lines.append(f"  shadow: its model steps on {shadow['steps_on']}; {shadow['late']} answers not back in "
+                         f"time, {shadow['skipped']} ticks not asked (a step still running): resynchronised instead")
         legs = (self.link or {}).get("legs", {})
         if "replies_lost" in legs:
             lost = {i: n for i, n in legs["replies_lost"].items() if n}

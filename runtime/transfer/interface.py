@@ -25,11 +25,21 @@ class TransferScheme:
         self.reference = reference
         self.q_hat: np.ndarray | None = None   # the reference state shown beside the measured one (telemetry)
         self.qd_hat: np.ndarray | None = None
-        self.one_step: tuple[np.ndarray, np.ndarray] | None = None
+        self._prediction: tuple[np.ndarray, np.ndarray] | None = None
+
+    @property
+    def one_step(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The model's prediction of this tick's (q, qd), made at the last tick from its measured state (None: none);
+        read by the loop before `predict` (a scheme whose step runs beside the loop takes it then)."""
+        return self._prediction
+
+    @one_step.setter
+    def one_step(self, value: tuple[np.ndarray, np.ndarray] | None) -> None:
+        self._prediction = value
 
     def reset(self) -> None:
         self.q_hat = self.qd_hat = None
-        self.one_step = None
+        self._prediction = None
         if self.reference is not None:
             self.reference.reset()
 

@@ -36,6 +36,7 @@ REFERENCE_MODELS = ("pinn", "nominal")  # transfer.reference_model: the kinds `b
 class ReferenceModel(Protocol):
     name: str
     pinn: OnnxPinn | None  # the ONNX PINN it steps, checked on the measured pose before the motors are enabled
+    self_contained: bool   # its step reads nothing but its arguments: it may step on another thread
 
     def reset(self) -> None: ...
 
@@ -111,6 +112,7 @@ class PinnReference:
     """The ONNX PINN as a reference model (one call per `step`, the LSTM state carried)."""
 
     name = "pinn"
+    self_contained = True
 
     def __init__(self, pinn: OnnxPinn):
         self.pinn = pinn
@@ -129,6 +131,7 @@ class NominalReference:
 
     name = "nominal"
     pinn = None
+    self_contained = False  # a step from a state it did not give reads the robot's base state
 
     def __init__(self, config: RobotConfig, base_state: Callable[[], BaseEstimate | GroundTruth | None]):
         robot, self.data = nominal_model(config)

@@ -21,12 +21,13 @@ def build_scheme(config: RobotConfig, name: str, pinn_path: Path | None = None, 
     `estimator` (the run's `KinematicEstimator`: a robot-faithful run, any backend) or, when `base_state` is given
     instead, the simulator's truth (a truth-fed diagnostic run on the mock). `twin_controller()` makes the twin
     schemes' second instance of the robot's nominal controller (default: the configured walking policy); `paced`:
-    the twin runs on a thread of its own (`runtime.transfer.twin_runner`)."""
+    the twin runs on a thread of its own (`runtime.transfer.twin_runner`), the shadow's PINN steps beside the loop
+    (`runtime.transfer.shadow_stepper`)."""
     entry = scheme_entry(name)
     transfer = settings_for(config)
 
-    def inner(other: str) -> TransferScheme:  # an inner scheme: the same run's base state, nothing of its own
-        return build_scheme(config, other, pinn_path, base_state, estimator=estimator)
+    def inner(other: str) -> TransferScheme:  # an inner scheme: the same run's base state and pacing
+        return build_scheme(config, other, pinn_path, base_state, estimator=estimator, paced=paced)
 
     context = SchemeContext(config=config, name=name, transfer=transfer,
                             settings=None if entry.settings is None else transfer.of(entry.section),

@@ -73,6 +73,10 @@ class TwinScheme(TransferScheme):
     def twin(self):
         return self.runner.integral.twin
 
+    @property
+    def one_step(self):
+        return self.inner.one_step  # read when the loop asks: the inner scheme's step may run beside the loop
+
     def reset(self) -> None:
         self.inner.reset()
         self.runner.reset()
@@ -83,7 +87,7 @@ class TwinScheme(TransferScheme):
         self._clear()
 
     def _clear(self) -> None:
-        self.q_hat = self.qd_hat = self.one_step = None
+        self.q_hat = self.qd_hat = None
         self.u = np.zeros_like(self.u)
         self.engaged = np.zeros_like(self.u) if self.runner.integral.banded else np.ones_like(self.u)
         self.command_offset = np.zeros(3)
@@ -97,12 +101,14 @@ class TwinScheme(TransferScheme):
         self.backlog_max = 0     # the most ticks posted and not yet stepped, seen at a post
 
     def close(self) -> None:
+        self.inner.close()
         self.runner.close()
 
     def report(self) -> dict:
-        return {"twin": {"resyncs": self.resyncs, "stepped": self.runner.done + 1, "backlog_max": self.backlog_max,
-                         "behind_ticks": self.behind_ticks, "lag_ticks": self.runner.lag,
-                         "thread": isinstance(self.runner, ThreadTwinRunner)}}
+        twin = {"resyncs": self.resyncs, "stepped": self.runner.done + 1, "backlog_max": self.backlog_max,
+                "behind_ticks": self.behind_ticks, "lag_ticks": self.runner.lag,
+                "thread": isinstance(self.runner, ThreadTwinRunner)}
+        return {**self.inner.report(), "twin": twin}
 
     def steer(self, command: np.ndarray) -> np.ndarray:
         self._command = np.array(command, dtype=float)
@@ -110,7 +116,7 @@ class TwinScheme(TransferScheme):
 
     def predict(self, a, q, qd, tau_star, command=None) -> None:
         self.inner.predict(a, q, qd, tau_star, command)
-        self.q_hat, self.qd_hat, self.one_step = self.inner.q_hat, self.inner.qd_hat, self.inner.one_step
+        self.q_hat, self.qd_hat = self.inner.q_hat, self.inner.qd_hat
         tick = self._tick
         self._tick += 1
         runner = self.runner
