@@ -172,6 +172,10 @@ def report(name: str, stats: dict, emulator: EmulatorProcess, no_delay: bool) ->
         print(f"     controller on {runner['runs_on']}, its targets {runner['lag_ticks']} tick(s) after its reading: "
               f"CPU p50/p99 {cpu.get('p50') or 0:.0f}/{cpu.get('p99') or 0:.0f} µs a call; {runner['late_ticks']} "
               f"ticks waited for targets due, worst {runner['worst_late_ticks']} ticks late")
+    shadow = stats.get("shadow") or {}
+    if shadow:
+        print(f"     shadow's model stepped on {shadow['steps_on']}: {shadow['late']} answers not back in time, "
+              f"{shadow['skipped']} ticks not asked")
     seen = stats["witness"]
     longest = max((ms for _, ms in seen["stalls"]), default=0.0)
     print(f"     machine stalls seen by the witness (SCHED_FIFO 90 on every CPU, > 2 ms): {len(seen['stalls'])}, "
