@@ -32,12 +32,9 @@ def run(order: str, seconds: float, drop: float, seed: int) -> dict:
     with BearBusEmulator(IDS) as emulator:
         config = load_config(overrides=[f"buses.bear.port={emulator.path}"])
         legs = BearLegs(config, ping_rounds=3, ping_retry_s=0.01, clear_attempts=2,
-                        reply_timeout_s=config.buses.bear.reply_timeout_s)
+                        reply_timeout_s=config.buses.bear.reply_timeout_s, turn_order=order != "fixed")
         legs.open()
         try:
-            if order == "fixed":  # the order before the turning one: every cycle IDs 1..10
-                legs._rotation = [legs._rotation[0]] * len(IDS)
-                legs._orders = [legs._orders[0]] * len(IDS)
             legs.cycle(None, retry=True)
             emulator.set_reply_loss(drop, 0.0, seed)
             old = {limit: Counter() for limit in OLD_S}

@@ -72,7 +72,7 @@ class BearLegs:
     """The ten BEARs: start-up, one bulk cycle per tick, damping. Actuator order = buses.bear.ids order."""
 
     def __init__(self, config: RobotConfig, *, ping_rounds: int, ping_retry_s: float, clear_attempts: int,
-                 reply_timeout_s: float):
+                 reply_timeout_s: float, turn_order: bool = True):
         self.config = config
         self.ids = tuple(config.buses.bear.ids)
         self.port = config.buses.bear.port
@@ -90,9 +90,13 @@ class BearLegs:
         self.cycles = 0
         self.late_replies = 0  # replies taken after their cycle's deadline (BulkReply.late)
         self._row = {device_id: k for k, device_id in enumerate(self.ids)}
-        # the bulk request's order each cycle (see `cycle`): actuator rows, and the IDs in that order
-        self._rotation = [np.roll(np.arange(len(self.ids)), -k) for k in range(len(self.ids))]
+        # the bulk request's order each cycle (see `cycle`; `turn_order` False: IDs in config order every cycle, the
+        # order before the turning one, for comparison): actuator rows, the IDs in that order, and where each
+        # actuator's reply is in it
+        turns = len(self.ids) if turn_order else 1
+        self._rotation = [np.roll(np.arange(len(self.ids)), -k) for k in range(turns)]
         self._orders = [tuple(self.ids[k] for k in rows) for rows in self._rotation]
+        self._reply_rows = [np.argsort(rows) for rows in self._rotation]
         self.first_cycle = self.last_cycle = math.nan
         self.low_latency = "not opened"
         self._monitor_tick = 0
@@ -270,7 +274,7 @@ class BearLegs:
         # taken); a lost last reply alone costs the reply gap (drivers.bear.REPLY_GAP_S). The order turns by one ID
         # a cycle, so that cost falls on each ID in turn: at a fixed order, three replies of the last ID lost in a
         # row (1 % loss: about one 30-s run in thirty) aged its sample past safety.max_sensor_age_s.
-        first = self.cycles % len(self.ids)
+        first = self.cycles % len(self._rotation)
         rows = self._rotation[first]
         order = self._orders[first]
         if torque is None:
@@ -279,7 +283,7 @@ class BearLegs:
             goal_iq = np.minimum(np.maximum(torque / self.kt, -self.i_max), self.i_max)
             reply = self.bus.bulk_cycle(order, self._torque_mode, goal_iq=goal_iq[rows], partial=True,
                                         extra_reads=monitor)
-        reply = reply.in_order(self.ids)
+        reply = reply.in_order(self.ids, self._reply_rows[first])
         stamp = time.monotonic()
         self.cycles += 1
         if self.cycles == 1:

@@ -90,14 +90,9 @@ def test_replies_taken_late_are_samples_stamped_with_their_request_and_not_lost(
     assert legs.link_report()["replies_late"] == 10
 
 
-def test_the_request_order_turns_and_every_actuator_keeps_its_own_sample_and_goal(legs):
-    """The bulk request starts one ID later every cycle, so that a lost last reply (which alone costs the driver's
-    reply gap) falls on each ID in turn; the replies, in that order, land in their own actuator's row, and each
-    BEAR is written its own goal."""
-    legs, emulator = legs
-    positions, velocities = [0.1 * i for i in IDS], [0.01 * i for i in IDS]
-    emulator.set_measured_many(IDS, positions, velocities, [0.0] * len(IDS))
-    orders = []
+def _record_orders(legs: BearLegs) -> list[tuple[int, ...]]:
+    """The ID order of every bulk request `legs` makes from now on (appended to the list returned)."""
+    orders: list[tuple[int, ...]] = []
     bulk_cycle = legs.bus.bulk_cycle
 
     def recorded(ids, *args, **kwargs):
@@ -105,6 +100,17 @@ def test_the_request_order_turns_and_every_actuator_keeps_its_own_sample_and_goa
         return bulk_cycle(ids, *args, **kwargs)
 
     legs.bus.bulk_cycle = recorded
+    return orders
+
+
+def test_the_request_order_turns_and_every_actuator_keeps_its_own_sample_and_goal(legs):
+    """The bulk request starts one ID later every cycle, so that a lost last reply (which alone costs the driver's
+    reply gap) falls on each ID in turn; the replies, in that order, land in their own actuator's row, and each
+    BEAR is written its own goal."""
+    legs, emulator = legs
+    positions, velocities = [0.1 * i for i in IDS], [0.01 * i for i in IDS]
+    emulator.set_measured_many(IDS, positions, velocities, [0.0] * len(IDS))
+    orders = _record_orders(legs)
     goal_iq = 0.5 * np.arange(1, len(IDS) + 1)  # A: one per actuator, all different
     for _ in range(len(IDS)):
         reading = legs.cycle(goal_iq * legs.kt)
@@ -114,3 +120,21 @@ def test_the_request_order_turns_and_every_actuator_keeps_its_own_sample_and_goa
         np.testing.assert_allclose(emulator.commands(IDS)["goal_iq"], goal_iq, rtol=1e-6)
     assert all(sorted(order) == IDS for order in orders)
     assert [order[-1] for order in orders] == IDS[-1:] + IDS[:-1]  # each ID last once in ten cycles
+
+
+def test_with_the_order_fixed_every_cycle_asks_in_config_order_and_each_actuator_keeps_its_row():
+    """`turn_order=False` (the order before the turning one, which bench/bench_last_reply_order.py compares)."""
+    with BearBusEmulator(IDS) as emulator:
+        config = load_config(overrides=[f"buses.bear.port={emulator.path}"])
+        legs = BearLegs(config, ping_rounds=2, ping_retry_s=0.01, clear_attempts=2, reply_timeout_s=0.02,
+                        turn_order=False)
+        legs.open()
+        try:
+            positions = [0.1 * i for i in IDS]
+            emulator.set_measured_many(IDS, positions, [0.0] * len(IDS), [0.0] * len(IDS))
+            orders = _record_orders(legs)
+            for _ in range(3):
+                np.testing.assert_allclose(legs.cycle(None).position, positions, rtol=1e-6)
+            assert orders == [tuple(IDS)] * 3
+        finally:
+            legs.close()

@@ -201,6 +201,10 @@ def test_a_bulk_reply_in_another_id_order_keeps_each_ids_row():
     assert ordered.answered.tolist() == [True, False, True] and ordered.lost_ids == (2,)
     assert ordered.estop_ids() == (3,) and ordered.sent_at == 12.5 and ordered.late is late
     assert reply.in_order((3, 1, 2)) is reply
+    given = reply.in_order((1, 2, 3), np.array([1, 2, 0]))  # the caller's rows: the same answers, no lookup
+    assert given.ids == ordered.ids and given.answered.tolist() == ordered.answered.tolist()
+    np.testing.assert_array_equal(given.values, ordered.values)
+    np.testing.assert_array_equal(given.error, ordered.error)
     assert BulkReply("/dev/x", (2, 1), ("present_position",), np.array([[2.0], [1.0]]),
                      np.zeros(2, np.uint8)).in_order((1, 2)).answered is None
 
