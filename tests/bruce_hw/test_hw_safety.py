@@ -17,6 +17,7 @@ import time
 
 import pytest
 from support.emulated_robot import BEAR_IDS, DXL_IDS, WALL_CLOCK_SLACK
+from support.pacing import completed_or_skipped
 
 from bruce_hw import BackendError
 from bruce_hw.emulation.process import FaultAt, reply_time
@@ -159,8 +160,13 @@ def test_sigterm_during_start_up_never_enables_a_motor(emulator, hw_config, tmp_
 @pytest.mark.parametrize("kind", ["drop", "corrupt"])
 def test_one_percent_lost_replies_are_counted_not_faults(emulator, hw_config, kind):
     emulator.send(f"loss bear {0.01 if kind == 'drop' else 0} {0.01 if kind == 'corrupt' else 0} 7")
-    summary = run_session(make_hw_backend(hw_config, check_imu=False), hw_config, duration=4.0, realtime=True,
-                          controller_kind="standing")
+
+    def attempt():
+        summary = run_session(make_hw_backend(hw_config, check_imu=False), hw_config, duration=4.0, realtime=True,
+                              controller_kind="standing")
+        return summary.exit_code == ExitCode.OK, summary.loop.to_json()["late_share"], summary
+
+    summary = completed_or_skipped(attempt, before_again=lambda: emulator.send("place"))
     legs = summary.link["legs"]
     assert summary.stop_cause == "duration reached" and summary.exit_code == ExitCode.OK, summary.stop_cause
     assert legs["replies_lost_total"] > 0 and 0.002 < legs["reply_loss_share"] < 0.03, legs
