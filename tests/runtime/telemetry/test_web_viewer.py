@@ -111,8 +111,10 @@ def live_run(tmp_path_factory):
     """bruce-run on the paced mock with --rerun web, and a browser on the link it printed."""
     folder = tmp_path_factory.mktemp("web_live")
     grpc_port = free_port()
-    # No --realtime: a run watched in a browser is paced anyway.
-    run = Command([sys.executable, "-m", "runtime.cli", "--backend", "mock", "--duration", str(RUN_S),
+    # --realtime, as on the robot: the loop at SCHED_FIFO on a CPU of its own, so that the headless browser's software
+    # rendering on the same two cores does not decide its late share (5.2 % without it on a slower VM, 2026-11-28);
+    # a stream that held the loop up would still make it late, whatever its priority.
+    run = Command([sys.executable, "-m", "runtime.cli", "--backend", "mock", "--realtime", "--duration", str(RUN_S),
                    "--cmd", "0.4,0,0", "--rerun", f"web={free_port()},grpc_port={grpc_port},row_hz={ROW_HZ}",
                    "--stats", str(folder / "stats.json")])
     browser = None
