@@ -50,7 +50,7 @@ def devices(emulator):
 
 
 RATE_FLOOR = "below safety.min_rate_hz"
-FREEZE_REACH_S = 0.1  # a rate-floor trip a freeze causes comes within the floor's 50-ms window after it, and its line
+FREEZE_REACH_S = 0.1  # a rate-floor trip that a freeze causes is printed within the floor's 50-ms window after it
 
 
 class Run:
