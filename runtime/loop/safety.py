@@ -1,14 +1,16 @@
 """The safety stage: always the last thing before `write()`; the torque it returns is what is sent and logged.
 
 Per tick, in this order:
-1. Triggers of the damping state: an e-stop input; non-finite joint or IMU data; joint or IMU data older than
-   `safety.max_sensor_age_s`; tilt beyond `safety.tilt_limit_deg` for `safety.tilt_ticks` ticks; an achieved
-   loop rate below `safety.min_rate_hz` over the last `safety.rate_window_s` (on the backend's clock: the robot's
-   time; a late tick alone is not a fault, docs/timing.md). Ages and the rate are judged on the time the process
-   was run: a host stall (`stalled`, the backend's `stalled_between`; for the joints also the leg bus's port calls
-   the host held, `joint_stalled`) is neither old data nor a slow loop, up to
-   `safety.host_stall_max_s` between two ticks; a longer one trips (docs/safety.md, "Host stalls"). The loop adds
-   its own (a model returning non-finite values, SIGINT or SIGTERM) through `trip()`.
+1. Triggers of the damping state, in the order they are checked (the first found is the cause): a host stall
+   beyond `safety.host_stall_max_s` since the previous tick; an e-stop input (a press is the cause a person needs
+   to read, but a stall that long comes first: it lets the BEARs' own watchdog set the same error bit 3); an
+   achieved loop rate below `safety.min_rate_hz` over the last `safety.rate_window_s` (on the backend's clock: the
+   robot's time; a late tick alone is not a fault, docs/timing.md); non-finite joint or IMU data; joint or IMU data
+   older than `safety.max_sensor_age_s`; tilt beyond `safety.tilt_limit_deg` for `safety.tilt_ticks` ticks. Ages
+   and the rate are judged on the time the process was run: a host stall (`stalled`, the backend's
+   `stalled_between`; for the joints also the leg bus's port calls the host held, `joint_stalled`) is neither old
+   data nor a slow loop, up to the bound (docs/safety.md, "Host stalls"). The loop adds its own (a model returning
+   non-finite values, SIGINT or SIGTERM) through `trip()`.
 2. The command filter: a non-finite torque trips; torque that pushes a joint further past a position soft
    limit (`joints.position_limits` shrunk by `safety.position_margin`) or further beyond its velocity limit is
    removed; the soft start scales torques in over `safety.torque_ramp_s`; the rate of change is limited to
@@ -104,14 +106,14 @@ class SafetyStage:
             return self.trip(f"host stall: this process was not run for {1e3 * stalled:.1f} ms since the previous "
                              f"tick > safety.host_stall_max_s {1e3 * self.host_stall_max:g} ms (the motors held their "
                              f"last current meanwhile)")
+        if robot.estop:
+            return self.trip("e-stop input asserted")
         if now - oldest > self.rate_window_s and oldest > -math.inf and \
                 now - oldest - self.stalled(oldest, now) > self.rate_window_s:
             return self.trip(f"loop ran {self.rate_ticks} ticks in {1e3 * (now - oldest):.1f} ms: below "
                              f"safety.min_rate_hz {self.min_rate_hz:g} Hz over safety.rate_window_s "
                              f"{1e3 * self.rate_window_s:g} ms")
         joints, imu = robot.joints, robot.imu
-        if robot.estop:
-            return self.trip("e-stop input asserted")
         if not all_finite(joints.q, joints.qd):
             return self.trip("non-finite joint reading (q or qd)")
         if not all_finite(imu.gyro, imu.accel):

@@ -113,6 +113,29 @@ def test_estop_trips(config):
     assert stage.tripped and "e-stop" in stage.cause
 
 
+@pytest.mark.parametrize("not_run", [True, False], ids=["a stall beyond the bound", "a slow window"])
+def test_an_estop_is_named_before_a_slow_window_but_not_before_a_long_stall(config, not_run):
+    """The first tick after a gap may find the E-stop bit together with a rate below the floor (the process run,
+    slowly): the press is the cause a person needs to read. Found with a stall beyond the bound (the process not
+    run), the bit is the BEARs' own watchdog as likely as a press (the same error bit 3), and the stall is named.
+    Without the bit the same tick trips on the other cause."""
+    causes = []
+    for estop in (True, False):
+        stage = SafetyStage(config, stalled=(lambda t0, t1: t1 - t0) if not_run else None)
+        stage.state = SafetyState.RUNNING
+        now = 0.0
+        for _ in range(stage.rate_ticks):
+            now += config.dt
+            stage.check(robot(config, stamp=now, imu_stamp=now), now=now)
+        assert not stage.tripped, stage.cause
+        now += 2 * max(config.safety.host_stall_max_s, config.safety.rate_window_s)
+        stage.check(robot(config, estop=estop, stamp=now, imu_stamp=now), now=now)
+        causes.append(stage.cause)
+    other = "host stall" if not_run else "below safety.min_rate_hz"
+    assert other in causes[1], causes
+    assert other in causes[0] if not_run else causes[0] == "e-stop input asserted", causes
+
+
 def test_rate_floor_trips_on_a_slow_window_not_on_one_late_tick(config):
     """A late tick is not a fault; fewer than safety.min_rate_hz ticks over safety.rate_window_s is one."""
     cfg = config.safety
