@@ -6,8 +6,9 @@ Per emulator mode (plain, --lockstep, --realtime, --realtime --lockstep) two cas
 - read-only: `bulk_cycle(ids, None)` with torque off (the robot is held: the physics has nothing to do);
 - force: every BEAR enabled in force mode, goals = the pose measured at the start, read and written every cycle
   (the physics runs: in lockstep one step per cycle, right after the replies go out).
-Printed per case: p50 / p90 / p99 / max of the round trip, lost replies, and cycles per second (the acceptance of
-issue #19: at least 990 cycles/s without a reply delay).
+Printed per case: p50 / p90 / p99 / max of the round trip, lost replies, cycles per second (the acceptance of
+issue #19: at least 990 cycles/s without a reply delay), and the host's own CPU time a cycle (the calling thread's
+clock: what the legs' bus thread costs its CPU on the robot computer, with the kernel's share of the port calls).
 
 Mode `floor`: instead of the emulator, a child process that answers every request at once with the same 10 canned
 replies (no device logic, no physics): what the host driver, the pty and two process wake-ups cost by themselves,
@@ -38,27 +39,33 @@ MODES = {"floor": (), "plain": (), "lockstep": ("--lockstep",), "realtime": ("--
 WARM_UP = 200
 
 
-def _cycles(bus: BearBus, ids: list[int], n: int, goals=None) -> tuple[np.ndarray, int, float]:
-    """(round trips in s, replies lost, wall time) of n cycles."""
-    rtt = np.empty(n)
+def _cycles(bus: BearBus, ids: list[int], n: int, mode: Mode | None = None, goals=None
+            ) -> tuple[np.ndarray, np.ndarray, int, float]:
+    """(round trips in s, the host's CPU time in s, replies lost, wall time) of n cycles: read-only (`mode` None),
+    goal currents (TORQUE: the legs' cycle on the robot) or goal positions (FORCE)."""
+    rtt, cpu = np.empty(n), np.empty(n)
     lost = 0
     start = time.perf_counter()
     for k in range(n):
-        t0 = time.perf_counter()
-        if goals is None:
+        t0, c0 = time.perf_counter(), time.thread_time()
+        if mode is None:
             reply = bus.bulk_cycle(ids, None, partial=True)
+        elif mode is Mode.TORQUE:
+            reply = bus.bulk_cycle(ids, Mode.TORQUE, goal_iq=goals, partial=True)
         else:
             reply = bus.bulk_cycle(ids, Mode.FORCE, goals, np.zeros(len(ids)), np.zeros(len(ids)), partial=True)
-        rtt[k] = time.perf_counter() - t0
+        rtt[k], cpu[k] = time.perf_counter() - t0, time.thread_time() - c0
         if reply.answered is not None:
             lost += int(np.count_nonzero(~reply.answered))
-    return rtt, lost, time.perf_counter() - start
+    return rtt, cpu, lost, time.perf_counter() - start
 
 
-def _line(case: str, rtt: np.ndarray, lost: int, wall: float) -> str:
+def _line(case: str, rtt: np.ndarray, cpu: np.ndarray, lost: int, wall: float) -> str:
     p50, p90, p99 = (1e3 * float(np.percentile(rtt, q)) for q in (50, 90, 99))
+    cpu50, cpu99 = (1e6 * float(np.percentile(cpu, q)) for q in (50, 99))
     return (f"  {case:10s} p50 {p50:.3f}  p90 {p90:.3f}  p99 {p99:.3f}  max {1e3 * rtt.max():.3f} ms  "
-            f"{lost} replies lost  {len(rtt) / wall:.0f} cycles/s")
+            f"{lost} replies lost  {len(rtt) / wall:.0f} cycles/s; the host's CPU a cycle p50 {cpu50:.0f} / p99 "
+            f"{cpu99:.0f} µs")
 
 
 def serve_floor() -> None:
@@ -86,9 +93,13 @@ def run_floor(cycles: int) -> None:
     try:
         port = child.stdout.readline().strip()
         print("floor (canned replies, no emulator):", flush=True)
+        ids = list(range(1, 11))
         with BearBus(port, reply_timeout_s=0.02) as bus:
-            _cycles(bus, list(range(1, 11)), WARM_UP)
-            print(_line("read-only", *_cycles(bus, list(range(1, 11)), cycles)), flush=True)
+            _cycles(bus, ids, WARM_UP)
+            print(_line("read-only", *_cycles(bus, ids, cycles)), flush=True)
+            currents = np.linspace(-1.0, 1.0, len(ids))
+            _cycles(bus, ids, WARM_UP, Mode.TORQUE, currents)
+            print(_line("torque", *_cycles(bus, ids, cycles, Mode.TORQUE, currents)), flush=True)
     finally:
         child.stdin.close()
         child.wait(timeout=10)
@@ -111,8 +122,8 @@ def run_mode(name: str, cycles: int, root: str | None, delay: float) -> None:
                 bus.write_config(device_id, {"mode": int(Mode.FORCE)})
             bus.set_torque_enable(ids, 1)
             try:
-                _cycles(bus, ids, WARM_UP, pose)
-                print(_line("force", *_cycles(bus, ids, cycles, pose)), flush=True)
+                _cycles(bus, ids, WARM_UP, Mode.FORCE, pose)
+                print(_line("force", *_cycles(bus, ids, cycles, Mode.FORCE, pose)), flush=True)
             finally:
                 bus.set_torque_enable(ids, 0)
                 for device_id in ids:

@@ -9,7 +9,7 @@ code that makes it, and drivers/emulators/bear.py makes the same ones.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
+import functools
 import math
 import os
 import struct
@@ -22,6 +22,7 @@ import numpy as np
 from drivers.bear_codec import (
     StatusPacket,
     StatusParser,
+    bulk_layout,
     decode_values,
     encode_bulk,
     encode_ping,
@@ -93,6 +94,10 @@ class RegisterReply:
         return self.values[REGISTER_ALIASES.get(name, name)]
 
 
+# The error bits as ints: an IntFlag's `&` builds a flag each time, ten times a cycle on the bus thread.
+ESTOP_BIT, FAULT_MASK = int(BearError.WATCHDOG_ESTOP), int(FAULT_BITS)
+
+
 @dataclass(frozen=True)
 class BulkReply:
     """One BULK_COMM's answers, rows in the order of `ids`. u32 values are exact in float64."""
@@ -144,20 +149,28 @@ class BulkReply:
             row = {device_id: k for k, device_id in enumerate(self.ids)}
             rows = np.array([row[i] for i in ids])
         answered = None if self.answered is None else self.answered[rows]
-        return dataclasses.replace(self, ids=ids, values=self.values[rows], error=self.error[rows], answered=answered)
+        return BulkReply(self.bus, ids, self.registers, self.values[rows], self.error[rows], answered, self.sent_at,
+                         self.late)
 
     def faulted_ids(self) -> tuple[int, ...]:
         """IDs reporting a fault bit (2-6; not the warnings)."""
-        return tuple(i for i, e in zip(self.ids, self.error, strict=True) if int(e) & FAULT_BITS)
+        return tuple(i for i, e in zip(self.ids, self.error.tolist(), strict=True) if e & FAULT_MASK)
 
     def estop_ids(self) -> tuple[int, ...]:
         """IDs reporting the watchdog / E-stop bit."""
-        return tuple(i for i, e in zip(self.ids, self.error, strict=True) if int(e) & BearError.WATCHDOG_ESTOP)
+        return tuple(i for i, e in zip(self.ids, self.error.tolist(), strict=True) if e & ESTOP_BIT)
 
     def raise_for_faults(self) -> None:
         """DeviceFault naming the first faulted ID and its flags, if any ID reports a fault."""
         for device_id in self.faulted_ids():
             raise DeviceFault(self.bus, device_id, self.flags(device_id))
+
+
+@functools.lru_cache(maxsize=64)
+def _bulk_registers(read_regs: tuple[str | int, ...], write_regs: tuple[str | int, ...]
+                    ) -> tuple[tuple[Register, ...], tuple[Register, ...]]:
+    """The status registers a bulk request names (looked up once per set: the bus thread names the same every cycle)."""
+    return tuple(status_register(n) for n in read_regs), tuple(status_register(n) for n in write_regs)
 
 
 # -- the bus --------------------------------------------------------------------------------------------------------
@@ -307,14 +320,12 @@ class BearBus:
 
         `partial`: one try, never a retry (a control tick cannot wait for one), and whatever came back is returned:
         rows of IDs that did not answer are NaN and `answered` says which; the caller keeps their last sample."""
-        ids = tuple(int(i) for i in ids)
-        reads = [status_register(n) for n in read_regs]
-        writes = [status_register(n) for n in write_regs]
+        layout = bulk_layout(ids, *_bulk_registers(tuple(read_regs), tuple(write_regs)))
+        ids, reads, writes = layout.ids, layout.reads, layout.writes
         if writes and (values is None or len(values) != len(ids)):
             raise ValueError(f"BULK_COMM writes {len(writes)} registers: give one row of values per ID ({len(ids)})")
-        rows = {} if not writes else dict(zip(ids, [list(r) for r in values], strict=True))
-        request = encode_bulk(ids, reads, writes, [rows[i] for i in ids] if writes else None)  # validates first
-        names = tuple(r.name for r in reads)
+        request = layout.encode(values)  # validates first
+        names = layout.read_names
         if not reads:  # nobody answers a write-only bulk
             self._send(request)
             return BulkReply(self.port, ids, names, np.zeros((len(ids), 0)), np.zeros(len(ids), np.uint8))
@@ -325,23 +336,23 @@ class BearBus:
             if attempt:
                 self.stats.retries += 1
                 # only to the motors that did not answer: their goals are written again (goal writes are idempotent)
-                request = encode_bulk(pending, reads, writes, [rows[i] for i in pending] if writes else None)
+                request = encode_bulk(pending, reads, writes,
+                                      [values[ids.index(i)] for i in pending] if writes else None)
             got.update(self._exchange(request, pending, reply_length(len(reads)), keep_tail=partial))
             pending = [i for i in pending if i not in got]
             if not pending:
                 break
-        fmt = "<" + "".join(r.fmt for r in reads)
         sent_at = self._sent_at
         if pending:
             self.stats.timeouts += 1
             if not partial:
                 raise BusTimeout(self.port, pending, f"BULK_COMM, {self.tries} tries")
-            self._awaited = (tuple(pending), reads, sent_at)
-            lost = np.full(len(reads), np.nan)
-            table = np.array([struct.unpack(fmt, got[i].data) if i in got else lost for i in ids], dtype=np.float64)
+            self._awaited = (tuple(pending), list(reads), sent_at)
+            lost = (math.nan,) * len(reads)
+            table = np.array([layout.unpack_reply(got[i].data) if i in got else lost for i in ids], dtype=np.float64)
             errors = np.array([got[i].error if i in got else 0 for i in ids], dtype=np.uint8)
             return BulkReply(self.port, ids, names, table, errors, np.array([i in got for i in ids]), sent_at, late)
-        table = np.array([struct.unpack(fmt, got[i].data) for i in ids], dtype=np.float64)
+        table = np.array([layout.unpack_reply(got[i].data) for i in ids], dtype=np.float64)
         return BulkReply(self.port, ids, names, table, np.array([got[i].error for i in ids], dtype=np.uint8),
                          None, sent_at, late)
 
@@ -366,7 +377,7 @@ class BearBus:
                 if column.shape != (len(ids),):
                     raise ValueError(f"{name}: {column.size} values for {len(ids)} IDs")
                 columns.append(column)
-        values = np.column_stack(columns).tolist() if columns else None
+        values = np.column_stack(columns) if columns else None
         return self.bulk_comm(ids, CYCLE_READS + tuple(extra_reads), writes, values, partial=partial)
 
     def cycle_budget_s(self, n_ids: int, n_read: int = len(CYCLE_READS), n_write: int = 3) -> float:

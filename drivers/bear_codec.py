@@ -12,22 +12,27 @@ bytes little-endian, float32 or uint32 by register. Writes (WRITE_STAT, WRITE_CF
 
 from __future__ import annotations
 
+import functools
 import struct
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
 
 from drivers.bear_registers import (
     BROADCAST_ID,
+    FLOAT32_MAX,
     HEADER,
     MAX_BULK_REGISTERS,
     MAX_DEVICE_ID,
     MAX_PARAMS,
+    RATED_LIMITS,
     Instruction,
     Register,
     error_flags,
 )
 from drivers.errors import LinkStats
-from drivers.framing import skip_to_header
+from drivers.framing import seek_header
 
 
 # -- packets (pure: no I/O) -----------------------------------------------------------------------------------------
@@ -76,40 +81,87 @@ def encode_save_config(device_id: int) -> bytes:
     return encode_frame(device_id, Instruction.SAVE_CFG)
 
 
+class BulkLayout:
+    """One BULK_COMM's shape, the IDs with the read and write registers, validated once; `encode(values)` packs a
+    request of that shape. The bus thread sends the same shape every cycle (`bulk_layout` keeps them): its checks and
+    packing formats are built once, not every millisecond.
+
+    BULK_COMM (0x12) goes to the broadcast ID: params N, (n_read << 4 | n_write), read addresses, write addresses,
+    then per motor its ID and 4 bytes per write register. Every listed motor answers one status packet (LEN = 4 n_read
+    + 2) in request order, none if n_read = 0."""
+
+    def __init__(self, ids: Sequence[int], read_regs: Sequence[Register], write_regs: Sequence[Register] = ()):
+        ids = tuple(int(i) for i in ids)
+        if not ids or len(set(ids)) != len(ids) or not all(0 <= i <= MAX_DEVICE_ID for i in ids):
+            raise ValueError(f"BULK_COMM needs distinct device IDs in 0..{MAX_DEVICE_ID}, got {list(ids)}")
+        for regs in (read_regs, write_regs):
+            if len(regs) > MAX_BULK_REGISTERS:
+                raise ValueError(f"BULK_COMM takes at most {MAX_BULK_REGISTERS} read and {MAX_BULK_REGISTERS} write "
+                                 "registers")
+            if any(r.table != "status" for r in regs):
+                raise ValueError("BULK_COMM reaches status registers only")
+        if any(not r.writable for r in write_regs):
+            raise ValueError(f"read-only registers cannot be written: {[r.name for r in write_regs if not r.writable]}")
+        self.ids, self.reads, self.writes = ids, tuple(read_regs), tuple(write_regs)
+        self.read_names = tuple(r.name for r in read_regs)
+        self.unpack_reply = struct.Struct("<" + "".join(r.fmt for r in read_regs)).unpack  # one reply's data
+        self._head = (bytes((len(ids), len(read_regs) << 4 | len(write_regs)))
+                      + bytes(r.address for r in read_regs) + bytes(r.address for r in write_regs))
+        self._pack = struct.Struct("<" + ("B" + "".join(r.fmt for r in write_regs)) * len(ids)).pack
+        # Each f32 goal's bound, beyond which `Register.check` refuses it (the rated current, else float32's range):
+        # values within every bound are packed as they are; any other goes through `check`, which names the problem.
+        self._bounds = (tuple(RATED_LIMITS.get(r.name, FLOAT32_MAX) for r in write_regs) * len(ids)
+                        if write_regs and all(r.kind == "f32" for r in write_regs) else None)
+        self._ids_placed: list[int | float] = [0] * (len(ids) * (len(write_regs) + 1))  # ID, then its values
+        self._ids_placed[::len(write_regs) + 1] = ids
+
+    def encode(self, values=None) -> bytes:
+        """The request; `values[k][j]` is motor ids[k]'s value of write_regs[j] (rows, or an array of them)."""
+        if not self.writes:
+            return encode_frame(BROADCAST_ID, Instruction.BULK_COMM, self._head + bytes(self.ids))
+        return encode_frame(BROADCAST_ID, Instruction.BULK_COMM, self._head + self._pack(*self._flat(values)))
+
+    def _flat(self, values) -> list[int | float]:
+        """ID, its values, for each motor; every value checked."""
+        if self._bounds is not None and values is not None:
+            table = np.asarray(values)
+            if table.dtype.kind in "fiub" and table.shape == (len(self.ids), len(self.writes)):
+                goals = table.ravel().tolist()
+                if all(-bound <= value <= bound for value, bound in zip(goals, self._bounds, strict=True)):
+                    flat = self._ids_placed.copy()  # NaN is within no bound: it takes the path below
+                    step = len(self.writes) + 1
+                    for j in range(step - 1):
+                        flat[1 + j::step] = goals[j::step - 1]
+                    return flat
+        flat = []
+        rows = list(values if values is not None else ())
+        if len(rows) != len(self.ids):
+            raise ValueError(f"BULK_COMM needs one row of {len(self.writes)} values per ID ({len(self.ids)} IDs)")
+        for device_id, row in zip(self.ids, rows, strict=True):
+            row = list(row)
+            if len(row) != len(self.writes):
+                raise ValueError(f"ID {device_id}: {len(row)} values for {len(self.writes)} write registers")
+            flat.append(device_id)
+            flat.extend(r.check(v) for r, v in zip(self.writes, row, strict=True))
+        return flat
+
+
+@functools.lru_cache(maxsize=256)
+def _cached_layout(ids: tuple[int, ...], read_regs: tuple[Register, ...], write_regs: tuple[Register, ...]):
+    return BulkLayout(ids, read_regs, write_regs)
+
+
+def bulk_layout(ids: Sequence[int], read_regs: Sequence[Register], write_regs: Sequence[Register] = ()
+                ) -> BulkLayout:
+    """The layout of this shape, built once (a bus asks the same few shapes over and over: its cycle, the cycle with
+    its monitoring reads, the retries to the IDs that did not answer)."""
+    return _cached_layout(tuple(int(i) for i in ids), tuple(read_regs), tuple(write_regs))
+
+
 def encode_bulk(ids: Sequence[int], read_regs: Sequence[Register], write_regs: Sequence[Register] = (),
                 values=None) -> bytes:
-    """BULK_COMM (0x12) to the broadcast ID: params N, (n_read << 4 | n_write), read addresses, write addresses, then
-    per motor its ID and 4 bytes per write register. `values[k][j]` is motor ids[k]'s value of write_regs[j],
-    packed by type. Every listed motor answers one status packet (LEN = 4 n_read + 2) in request order, none if
-    n_read = 0."""
-    ids = [int(i) for i in ids]
-    if not ids or len(set(ids)) != len(ids) or not all(0 <= i <= MAX_DEVICE_ID for i in ids):
-        raise ValueError(f"BULK_COMM needs distinct device IDs in 0..{MAX_DEVICE_ID}, got {ids}")
-    for regs in (read_regs, write_regs):
-        if len(regs) > MAX_BULK_REGISTERS:
-            raise ValueError(f"BULK_COMM takes at most {MAX_BULK_REGISTERS} read and {MAX_BULK_REGISTERS} write "
-                             "registers")
-        if any(r.table != "status" for r in regs):
-            raise ValueError("BULK_COMM reaches status registers only")
-    if any(not r.writable for r in write_regs):
-        raise ValueError(f"read-only registers cannot be written: {[r.name for r in write_regs if not r.writable]}")
-    rows = [] if not write_regs else list(values if values is not None else ())
-    if len(rows) != (len(ids) if write_regs else 0):
-        raise ValueError(f"BULK_COMM needs one row of {len(write_regs)} values per ID ({len(ids)} IDs)")
-    flat: list[int | float] = []
-    for device_id, row in zip(ids, rows, strict=False):
-        row = list(row)
-        if len(row) != len(write_regs):
-            raise ValueError(f"ID {device_id}: {len(row)} values for {len(write_regs)} write registers")
-        flat.append(device_id)
-        flat.extend(r.check(v) for r, v in zip(write_regs, row, strict=True))
-    if not write_regs:
-        flat = list(ids)
-    per_motor = "B" + "".join(r.fmt for r in write_regs)
-    params = (bytes((len(ids), len(read_regs) << 4 | len(write_regs)))
-              + bytes(r.address for r in read_regs) + bytes(r.address for r in write_regs)
-              + struct.pack("<" + per_motor * len(ids), *flat))
-    return encode_frame(BROADCAST_ID, Instruction.BULK_COMM, params)
+    """A BULK_COMM request (`BulkLayout`): `values[k][j]` is motor ids[k]'s value of write_regs[j], packed by type."""
+    return bulk_layout(ids, read_regs, write_regs).encode(values)
 
 
 def decode_values(registers: Sequence[Register], data: bytes) -> list[int | float]:
@@ -124,8 +176,7 @@ def reply_length(n_registers: int) -> int:
     return 4 * n_registers + 2
 
 
-@dataclass(frozen=True)
-class StatusPacket:
+class StatusPacket(NamedTuple):  # a tuple: ten are made every bus cycle; a frozen dataclass takes twice as long
     id: int
     error: int
     data: bytes
@@ -167,12 +218,13 @@ class StatusParser:
         self._buffer.clear()
         return dropped
 
-    def _reply_start_inside(self, buf: bytearray, total: int) -> int | None:
-        """Where, inside the frame buf[:total], the bytes read as the start of an expected reply: FF FF, an expected
-        ID, the expected LEN, an error byte with bit 7 (those present in the buffer). FF FF alone is not enough: a
-        float32 value holds it (present_iq 4.28 A is ff ff 88 40), and a motor at rest sends it every cycle."""
-        start = 2
-        while (inner := buf.find(HEADER, start, total)) != -1:
+    def _reply_start_inside(self, buf: bytearray, base: int, total: int) -> int | None:
+        """Where, inside the frame buf[base:base + total], the bytes read as the start of an expected reply: FF FF,
+        an expected ID, the expected LEN, an error byte with bit 7 (those present in the buffer). FF FF alone is not
+        enough: a float32 value holds it (present_iq 4.28 A is ff ff 88 40), and a motor at rest sends it every
+        cycle."""
+        start = base + 2
+        while (inner := buf.find(HEADER, start, base + total)) != -1:
             tail = buf[inner + 2:inner + 5]
             ok = len(tail) == 3
             if ok:
@@ -186,45 +238,52 @@ class StatusParser:
         return None
 
     def feed(self, data: bytes | bytearray) -> list[StatusPacket]:
+        # Walks the buffer by offset and drops what it has read once, at the end: the bus thread feeds ten replies a
+        # cycle, and a cut at each would move the rest of the buffer each time.
         buf = self._buffer
         buf += data
         found: list[StatusPacket] = []
-        while True:
-            if not skip_to_header(buf, HEADER, self.stats):
-                return found
-            if len(buf) < 5:
-                return found
-            device_id, length, error = buf[2], buf[3], buf[4]
-            reason = None
-            if device_id == 0xFF:  # FF FF FF: the header starts one byte later
-                reason = "garbage"
-            elif device_id == BROADCAST_ID or not error & 0x80:  # an instruction packet, not a reply
-                reason = "foreign"
-            elif length < 2 or (self._length is not None and length != self._length):
-                reason = "length"
-            if reason:
-                self.stats.reject(reason)
-                del buf[:1]
-                continue
-            total = 4 + length
-            if len(buf) < total:
-                return found
-            if checksum(buf[2:total - 1]) != buf[total - 1]:
-                self.stats.reject("checksum")
-                del buf[:1]
-                continue
-            inner = self._reply_start_inside(buf, total)
-            if inner is not None:
-                # A reply's start inside the frame: a reply cut short and completed by the next one's bytes, whose
-                # 8-bit checksum matched by chance (1 in 256), which would hand the loop a made-up sample.
-                # Resynchronise there.
-                self.stats.reject("truncated")
-                del buf[:inner]
-                continue
-            packet = StatusPacket(device_id, error, bytes(buf[5:total - 1]))
-            del buf[:total]
-            if self._ids is not None and device_id not in self._ids:
-                self.stats.reject("foreign")
-                continue
-            self.stats.packets += 1
-            found.append(packet)
+        stats, want_length, want_ids = self.stats, self._length, self._ids
+        pos = 0
+        try:
+            while True:
+                pos, at_header = seek_header(buf, HEADER, stats, pos)
+                if not at_header or len(buf) - pos < 5:
+                    return found
+                device_id, length, error = buf[pos + 2], buf[pos + 3], buf[pos + 4]
+                reason = None
+                if device_id == 0xFF:  # FF FF FF: the header starts one byte later
+                    reason = "garbage"
+                elif device_id == BROADCAST_ID or not error & 0x80:  # an instruction packet, not a reply
+                    reason = "foreign"
+                elif length < 2 or (want_length is not None and length != want_length):
+                    reason = "length"
+                if reason:
+                    stats.reject(reason)
+                    pos += 1
+                    continue
+                total = 4 + length
+                if len(buf) - pos < total:
+                    return found
+                if checksum(buf[pos + 2:pos + total - 1]) != buf[pos + total - 1]:
+                    stats.reject("checksum")
+                    pos += 1
+                    continue
+                inner = self._reply_start_inside(buf, pos, total) if buf.find(HEADER, pos + 2, pos + total) != -1 \
+                    else None
+                if inner is not None:
+                    # A reply's start inside the frame: a reply cut short and completed by the next one's bytes, whose
+                    # 8-bit checksum matched by chance (1 in 256), which would hand the loop a made-up sample.
+                    # Resynchronise there.
+                    stats.reject("truncated")
+                    pos = inner
+                    continue
+                packet = StatusPacket(device_id, error, bytes(buf[pos + 5:pos + total - 1]))
+                pos += total
+                if want_ids is not None and device_id not in want_ids:
+                    stats.reject("foreign")
+                    continue
+                stats.packets += 1
+                found.append(packet)
+        finally:
+            del buf[:pos]

@@ -29,9 +29,11 @@ from drivers.bear_codec import (
 from drivers.bear_registers import (
     CONFIG_REGISTERS,
     CYCLE_READS,
+    GOALS_BY_MODE,
     MAX_FRAME,
     STATUS_REGISTERS,
     BearError,
+    Mode,
     config_register,
     error_flags,
     status_register,
@@ -102,6 +104,32 @@ def test_bulk_packet_layout_and_length():
     assert len(tick) == 144 and tick[2] == 0xFE and tick[4] == 0x12
     # read-only bulk: the IDs follow the addresses
     assert encode_bulk([5, 6], reads) == frame(0xFE, 0x12, bytes([2, 0x10, 0x09, 5, 6]))
+
+
+@settings(max_examples=300, deadline=None)
+@given(mode=st.sampled_from([Mode.TORQUE, Mode.FORCE]),
+       goals=st.lists(st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=64),
+                                st.floats(-31.0, 31.0), st.integers(-40, 40), st.sampled_from([30.0, -30.0, 3.5e38])),
+                      min_size=30, max_size=30),
+       as_array=st.booleans())
+def test_a_cycles_goals_are_packed_and_refused_as_each_register_packs_and_refuses_them(mode, goals, as_array):
+    """The bulk request packs a cycle's goals all at once (`BulkLayout`, built once per shape): its bytes are those of
+    each value packed by its register (`Register.encode`, which refuses NaN, inf, beyond float32 and beyond the rated
+    current), and it refuses exactly where one of them does, naming the register."""
+    writes = [status_register(n) for n in GOALS_BY_MODE[mode]]
+    reads = [status_register(n) for n in CYCLE_READS]
+    table = np.array(goals[:10 * len(writes)], dtype=np.float64).reshape(10, len(writes))
+    if not as_array:
+        table = [[goals[k * len(writes) + j] for j in range(len(writes))] for k in range(10)]  # Python ints, floats
+    try:
+        per_motor = b"".join(bytes([i]) + b"".join(r.encode(v) for r, v in zip(writes, row, strict=True))
+                             for i, row in zip(IDS, np.asarray(table).tolist() if as_array else table, strict=True))
+    except ValueError as refused:
+        with pytest.raises(ValueError, match=str(refused).split(" ")[0]):
+            encode_bulk(IDS, reads, writes, table)
+        return
+    head = bytes([10, len(reads) << 4 | len(writes)]) + bytes(r.address for r in reads + writes)
+    assert encode_bulk(IDS, reads, writes, table) == frame(0xFE, 0x12, head + per_motor)
 
 
 def test_values_are_typed_by_register():
