@@ -69,10 +69,12 @@ class Run:
         self.active = threading.Event()
         self.reader = threading.Thread(target=self._read, daemon=True)
         self.reader.start()
-        if not self.active.wait(60):
-            self.proc.kill()
-            self.reader.join()
-            raise AssertionError(self.text())
+        started = time.monotonic()
+        while not self.active.wait(0.1):  # until the loop is active, or the run has ended without it
+            if self.proc.poll() is not None or time.monotonic() - started > 60:
+                self.proc.kill()
+                self.reader.join()
+                raise AssertionError(self.text())
 
     def _read(self) -> None:
         for line in self.proc.stdout:
