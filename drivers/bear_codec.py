@@ -269,8 +269,7 @@ class StatusParser:
                     stats.reject("checksum")
                     pos += 1
                     continue
-                inner = self._reply_start_inside(buf, pos, total) if buf.find(HEADER, pos + 2, pos + total) != -1 \
-                    else None
+                inner = self._reply_start_inside(buf, pos, total)
                 if inner is not None:
                     # A reply's start inside the frame: a reply cut short and completed by the next one's bytes, whose
                     # 8-bit checksum matched by chance (1 in 256), which would hand the loop a made-up sample.
