@@ -70,8 +70,8 @@ def test_replies_taken_late_are_samples_stamped_with_their_request_and_not_lost(
     import time
 
     legs, emulator = legs
+    legs.cycle(None)  # every reply in, at the fixture's 20 ms (at 2 ms a loaded machine lost this one's too)
     legs.bus.reply_timeout_s = 0.002
-    legs.cycle(None)
     emulator.set_measured_many(IDS, [0.05 * i for i in IDS], [0.0] * 10, [0.0] * 10)
     emulator.set_estop(True, ids=[6])
     emulator.set_reply_delay(0.02)
