@@ -328,7 +328,7 @@ class BearLegs:
                 return (f"the host held its port {1e3 * worst:.1f} ms (requests not sent, replies not handed over: "
                         f"the kernel's tty work for the port not run) > safety.host_stall_max_s "
                         f"{1e3 * self.host_stall_max_s:g} ms")
-        return silence(self.ids, reading, now, self.dt, self.max_age_s, stalled)
+        return silence(self.ids, reading, now, self.dt, self.max_age_s, stalled, oldest)
 
     def _held_since(self, now: float) -> float | None:
         """Since when the host has held the port call in progress, if it has (drivers.bear's `held_since`)."""

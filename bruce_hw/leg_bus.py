@@ -65,14 +65,17 @@ class LegBus(Protocol):
 
 
 def silence(ids: tuple[int, ...], reading: LegReading, now: float, dt: float, max_age_s: float,
-            stalled=None) -> str | None:
+            stalled=None, oldest: float | None = None) -> str | None:
     """The actuators whose kept sample is too old at `now`. Judged one tick ahead: a sample that will be too old when
     the safety stage looks at it is silence here, where the bus and the IDs are known (the safety stage's own age
     check could only say "stale joint data"). The age is the time the process ran since the sample: `stalled(t0,
     t1)`, the seconds of [t0, t1] in which it was not run (`bruce_hw.host_witness`), is left out: in a host stall
-    nobody asked the devices anything, so it is not their silence."""
+    nobody asked the devices anything, so it is not their silence. `oldest`: the oldest stamp, if the caller has it."""
+    oldest = float(reading.stamps.min()) if oldest is None else oldest
+    if now - oldest + dt <= max_age_s:  # every tick but a silent one: no sample can be stale (stalls only shorten ages)
+        return None
     ages = now - reading.stamps
-    if stalled is not None and np.any(ages + dt > max_age_s):
+    if stalled is not None:  # the oldest is past the bound: the stalls decide
         ages = ages - np.array([stalled(float(t), now) for t in reading.stamps])
     stale = np.flatnonzero(ages + dt > max_age_s)
     if stale.size:

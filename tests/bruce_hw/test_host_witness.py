@@ -10,6 +10,8 @@ import time
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from support.paths import REPO
 from support.safety_fixtures import robot, running_stage
 
@@ -219,3 +221,28 @@ def test_a_stall_not_yet_recorded_counts_up_to_the_moment_asked():
     assert witness.stalled_between(9.990, 10.0015) == 0.0  # within its tolerance: not a stall
     witness.record(10.001, 10.031)  # then it wakes and records the same stall: counted once
     assert witness.stalled_between(9.990, 10.031) == pytest.approx(0.030)
+
+
+# A few ms apart on a 0.1-ms grid: stalls that touch, overlap, extend one another or lie apart, and asks around them.
+_ms = st.integers(0, 400).map(lambda k: k / 1e4)
+
+
+@given(st.lists(st.tuples(_ms, st.integers(1, 300).map(lambda k: k / 1e4)), max_size=6),
+       st.lists(st.tuples(_ms, _ms), min_size=1, max_size=8), st.one_of(st.none(), _ms))
+def test_the_early_answers_agree_with_the_log(stalls, asks, open_since):
+    """`stalled_between` answers 0 without the log when nothing recorded reaches the interval and no stall is in
+    progress, and the silence rule passes a reading whose oldest sample cannot be stale without looking at each: both
+    must give what the full computation gives (the log's intervals; each sample's age less the stalls)."""
+    log = StallLog(open_since=lambda now: None if open_since is None or now <= open_since else open_since)
+    start = 0.0
+    for gap, length in stalls:  # recorded in time order, as the witness records them
+        start += gap
+        log.record(start, start + length)
+    for a, b in asks:
+        t0, t1 = min(a, b), max(a, b)
+        assert log.stalled_between(t0, t1) == pytest.approx(sum(end - s for s, end in log.intervals(t0, t1)))
+        now = t1 + 0.002
+        samples = reading([t0, t1, now - 0.0005])
+        ages = [now - t - log.stalled_between(t, now) for t in samples.stamps]
+        judged = silence(IDS, samples, now, DT, MAX_AGE, log.stalled_between)
+        assert (judged is None) == all(age + DT <= MAX_AGE for age in ages), (ages, judged)
