@@ -389,7 +389,7 @@ class HwBackend(Backend):
                              f"{1e3 * self.max_sensor_age:.1f} ms)")
                     if state is LifecycleState.INACTIVE:
                         raise self._fail(cause)
-                    self.fault(cause)  # the safety stage's age check trips on the same reading
+                    self.fault(cause)  # the loop ends the run on it (runtime.loop.run: the refused write)
         self._last = robot
         return robot
 
@@ -414,8 +414,8 @@ class HwBackend(Backend):
         """A read after a host stall: wait (at most POST_STALL_WAIT_S) for a bus cycle and an IMU sample that began
         after it, so the tick acts on fresh data instead of the stale reading; after the host held the leg bus's
         port (and no longer does), for a bus cycle. A stall longer than safety.host_stall_max_s damps at once (the
-        motors held their last current that long); the safety stage then trips on the same stall, naming its
-        length."""
+        motors held their last current that long); the safety stage trips on the same stall, naming its
+        length, and where it measured a moment shorter, the loop ends the run on this cause."""
         now = time.monotonic()
         last, self._last_read_at = self._last_read_at, now
         witness = self.witness

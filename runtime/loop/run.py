@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bruce_hw.backend import Backend, BackendError, LifecycleState
+from bruce_hw.backend import Backend, BackendError, LifecycleError, LifecycleState
 from bruce_hw.config import RobotConfig
 from bruce_hw.hw import GIL_SWITCH_INTERVAL_S
 from bruce_hw.io_priority import above_the_caller
@@ -556,7 +556,16 @@ def _loop(backend: Backend, config: RobotConfig, runner: InlineControllerRunner,
             if safety.tripped:
                 break
             t6, c6 = perf(), cpu()
-            backend.write(JointCommand(tau_ff=tau))
+            try:
+                backend.write(JointCommand(tau_ff=tau))
+            except LifecycleError:
+                # The backend went to damping on its own in this tick's read without raising: the hw backend on an
+                # IMU stream it judges stopped a tick ahead, or a host stall beyond the bound, where the safety stage
+                # judged the same moments a little apart and did not trip. Its cause ends the run, as the stage's.
+                if backend.state is not LifecycleState.FAULT:
+                    raise
+                safety.trip(backend.fault_cause or f"{backend.name} backend: damping")
+                break
             t7, c7 = perf(), cpu()
             if telemetry is not None:
                 elapsed = now - clock0

@@ -114,6 +114,35 @@ def test_a_pinn_far_off_on_the_measured_pose_is_refused(config, offset_pinn_onnx
     assert ActivationSpy.activations == 1 and summary.exit_code == ExitCode.OK
 
 
+class DampsItselfInRead(MujocoBackend):
+    """The mock, going to damping inside its read at tick `at` without raising and with a reading the safety stage
+    passes: as the hw backend does on an IMU stream it judges stopped a tick ahead of the stage's own age check."""
+
+    at = 30
+    reads = 0
+
+    def _read(self):
+        type(self).reads += 1
+        if type(self).reads == self.at:
+            self.fault("sense board /dev/ttyACM0: IMU stream stopped: last packet 7.6 ms ago")
+        return super()._read()
+
+
+def test_a_backend_that_damps_itself_in_its_read_ends_the_run_on_its_cause(config, tmp_path):
+    """Not on the refusal of the write after it ("command refused, the backend is fault", an internal error): the
+    backend's own cause, one line, the safety class, the stats written, the damping hold as for any trip."""
+    DampsItselfInRead.reads = 0
+    backend = DampsItselfInRead(config)
+    stats = tmp_path / "s.json"
+    summary = run_session(backend, config, duration=0.2, realtime=False, controller_kind="standing",
+                          stats_path=stats)
+    assert summary.exit_code == ExitCode.SAFETY_TRIP
+    assert summary.stop_cause == "sense board /dev/ttyACM0: IMU stream stopped: last packet 7.6 ms ago"
+    data = stats_of(stats)
+    assert 0 < data["ticks"] < DampsItselfInRead.at and data["final_state"] == "fault: damping", data
+    assert data["error"] is None and DampsItselfInRead.reads > DampsItselfInRead.at  # the hold read on
+
+
 class SignalDuringConfigure(ActivationSpy):
     def _on_configure(self):
         super()._on_configure()
