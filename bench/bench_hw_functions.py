@@ -37,6 +37,8 @@ WRAPPED = (
     ("runtime.loop.safety", "SafetyStage", "check", "MainThread"),
     ("runtime.loop.safety", "SafetyStage", "filter", "MainThread"),
     ("runtime.control.policy", "PolicyController", "__call__", "MainThread"),
+    ("runtime.observation.builder", "ObservationBuilder", "build", "MainThread"),
+    ("runtime.control.inference", "OnnxPolicy", "__call__", "MainThread"),
     ("bruce_hw.bear_legs", "BearLegs", "cycle", "hw-legs"),
     ("drivers.bear", "BearBus", "bulk_cycle", "hw-legs"),
     ("drivers.bear", "BearBus", "_exchange", "hw-legs"),
@@ -102,7 +104,8 @@ def main() -> None:
         module = argv.index("-m")  # python -m runtime.cli ... -> python this-file --child ...
         argv[module:module + 2] = [str(Path(__file__).resolve()), "--child"]
         run = subprocess.run(argv, capture_output=True, text=True, timeout=args.seconds + 120)
-    ending = next((line for line in run.stdout.splitlines() if line.lstrip().startswith("final state")), "")
+    ending = next((line for line in (run.stdout + run.stderr).splitlines()
+                   if line.lstrip().startswith("final state")), "")
     print(f"bruce-run --backend hw {'--cmd ' + args.cmd if args.cmd else '--controller standing'}, "
           f"{args.seconds:g} s: {ending.strip() or f'exit {run.returncode}'}")
     table = run.stderr[run.stderr.find("function (thread)"):] if "function (thread)" in run.stderr else run.stderr
