@@ -52,9 +52,6 @@ class StallLog:
         self.total_s = 0.0       # their total length
         self.worst_s = 0.0       # the longest
         self._counted_from = -float("inf")
-        # Where the newest recorded stall ends: an interval that begins after it can only hold a stall in progress,
-        # which `stalled_between` answers without the lock or the log (asked several times a tick, nearly always 0).
-        self._recorded_to = -float("inf")
 
     def reset_counts(self, since: float) -> None:
         """Count the stalls that begin at `since` or later (the backend's activation: stalls during start-up,
@@ -76,11 +73,9 @@ class StallLog:
                     return
                 stall = self._stalls[-1] = Stall(last.start, end)
                 grown = end - last.end
-                self._recorded_to = end
             else:
                 stall = Stall(start, end)
                 self._stalls.append(stall)
-                self._recorded_to = end
                 grown = stall.length
                 if stall.start >= self._counted_from:
                     self.count += 1
@@ -114,7 +109,10 @@ class StallLog:
 
     def stalled_between(self, t0: float, t1: float) -> float:
         """Seconds of [t0, t1] in which the stalls held it."""
-        if t0 >= self._recorded_to and self._open_since(t1) is None:  # recorded in time order: none reaches t0
+        # Asked several times a tick and nearly always 0: an interval that begins after the newest recorded stall ends
+        # can only hold one in progress, answered without the lock (the log changes only at its end, in time order).
+        stalls = self._stalls
+        if (not stalls or t0 >= stalls[-1].end) and self._open_since(t1) is None:
             return 0.0
         return sum(end - start for start, end in self.intervals(t0, t1))
 

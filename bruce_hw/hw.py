@@ -389,7 +389,9 @@ class HwBackend(Backend):
                              f"{1e3 * self.max_sensor_age:.1f} ms)")
                     if state is LifecycleState.INACTIVE:
                         raise self._fail(cause)
-                    self.fault(cause)  # the loop ends the run on it (runtime.loop.run: the refused write)
+                    # the safety stage's age check ends the run on the same reading, or, where it judged the
+                    # moment a little apart, the loop's refused write does (runtime.loop.run)
+                    self.fault(cause)
         self._last = robot
         return robot
 
