@@ -67,6 +67,9 @@ IMU_DELAY_S = 0.002
 # double-support moments of a gapped robot's gait gave wrong values (docs/transfer.md, "Levelling from the feet").
 LEVEL_SETTLE_TICKS = 3
 LEVEL_TIME_CONSTANT_S = 0.1
+# Steps of `plane_normal`'s refinement at most: four points with no plane to speak of (spread as much across
+# as along) converge slowly, and their normal is arbitrary anyway.
+PLANE_NORMAL_MAX_STEPS = 50
 LEVEL_BIAS_LIMIT = 0.5  # m/s^2: a learned bias is clipped here (an accelerometer further off is broken, not biased)
 
 FEET = (("r_toe", "r_heel"), ("l_toe", "l_heel"))  # per foot, its toe and heel contact/geom names
@@ -91,6 +94,46 @@ def _index(indices: list[int]) -> slice | np.ndarray:
     if indices == list(range(indices[0], indices[0] + len(indices))):
         return slice(indices[0], indices[0] + len(indices))
     return np.array(indices)
+
+
+def plane_normal(a: list[float], b: list[float], c: list[float], d: list[float]) -> tuple[float, float, float]:
+    """The unit normal of the least-squares plane through four points (sign arbitrary), in scalar math: the same
+    normal as the SVD of the centred points (the right singular vector of the smallest singular value), to
+    round-off. Newell's normal of the quadrilateral a b c d (half the cross product of its diagonals: exact when
+    the four are coplanar) is refined by the adjugate of their scatter matrix S until it stops changing: adj(S) =
+    det(S) S^-1 weighs S's eigenvectors by the product of the other two eigenvalues, so each step divides the error's
+    angle by lambda_mid / lambda_min (the in-plane spread over the out-of-plane one, squared: ~10^5 for BRUCE's feet
+    standing, one or two steps), and a rank-2 S (coplanar points) needs no inverse. Four collinear points have no
+    plane (S of rank 1, adj(S) = 0): Newell's vector comes back as it is."""
+    mx, my, mz = ((a[0] + b[0] + c[0] + d[0]) * 0.25, (a[1] + b[1] + c[1] + d[1]) * 0.25,
+                  (a[2] + b[2] + c[2] + d[2]) * 0.25)
+    sxx = sxy = sxz = syy = syz = szz = 0.0
+    for px, py, pz in (a, b, c, d):
+        px, py, pz = px - mx, py - my, pz - mz
+        sxx += px * px
+        sxy += px * py
+        sxz += px * pz
+        syy += py * py
+        syz += py * pz
+        szz += pz * pz
+    # Newell's normal: (c - a) x (d - b)
+    ux, uy, uz = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+    vx, vy, vz = d[0] - b[0], d[1] - b[1], d[2] - b[2]
+    nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+    # adj(S), symmetric and positive semi-definite (as S is): a step never flips the normal
+    axx, ayy, azz = syy * szz - syz * syz, sxx * szz - sxz * sxz, sxx * syy - sxy * sxy
+    axy, axz, ayz = sxz * syz - sxy * szz, sxy * syz - sxz * syy, sxy * sxz - sxx * syz
+    for _ in range(PLANE_NORMAL_MAX_STEPS):
+        x, y, z = axx * nx + axy * ny + axz * nz, axy * nx + ayy * ny + ayz * nz, axz * nx + ayz * ny + azz * nz
+        norm = math.sqrt(x * x + y * y + z * z)
+        if norm == 0.0:  # collinear points: no plane to refine to (feet never are)
+            break
+        x, y, z = x / norm, y / norm, z / norm
+        change = (x - nx) ** 2 + (y - ny) ** 2 + (z - nz) ** 2
+        nx, ny, nz = x, y, z
+        if change < 1e-30:  # moved less than 1e-15 rad: converged to round-off
+            break
+    return nx, ny, nz
 
 
 class _Foot:
@@ -123,6 +166,7 @@ class KinematicEstimator:
         self.jacp = np.zeros((3, model.nv))
         self.point = np.zeros(3)
         self.feet = [_Foot(model, toe, heel) for toe, heel in FEET]
+        self.level_geoms = tuple((foot.toe_geom, foot.heel_geom) for foot in self.feet)
         self.gravity = float(-model.opt.gravity[2])
         # Odometry variance by ticks since a switch closed (1: just closed), up to where the touchdown's share has
         # fallen below 1 % of ODOMETRY_STD^2; settled beyond.
@@ -240,20 +284,28 @@ class KinematicEstimator:
         self.variance = variance
         if self.ticks <= self.level_ticks and all(
                 foot.toe_ticks > LEVEL_SETTLE_TICKS and foot.heel_ticks > LEVEL_SETTLE_TICKS for foot in self.feet):
-            self._level(imu.accel, quat)
+            self._level(imu.accel.tolist(), (r00, r01, r10, r11, r20, r21))
 
-    def _level(self, specific_force: np.ndarray, quat) -> None:
-        """One levelling step (both feet flat; the kinematics at this tick's joints are in `kin`)."""
-        points = np.array([self.kin.geom_xpos[geom] for foot in self.feet for geom in (foot.toe_geom, foot.heel_geom)])
-        normal = np.linalg.svd(points - points.mean(axis=0))[2][-1]  # the feet plane's normal, base frame
-        if normal[2] < 0.0:
-            normal = -normal
-        rotation = np.array(rotation_entries(quat)).reshape(3, 3)
-        seen = specific_force - self.gravity * normal - rotation.T @ np.array(self.acceleration)
+    def _level(self, specific_force: list[float], rotation: tuple[float, ...]) -> None:
+        """One levelling step (both feet flat; the kinematics at this tick's joints are in `kin`). `rotation`: the
+        entries r00, r01, r10, r11, r20, r21 of the attitude's rotation (base to world), those the horizontal
+        components of R^T a need. Scalar math: on the robot's first second every tick runs it, and numpy's calls
+        (an SVD, two clips) cost ~27 µs warm and several times that on the control thread's cold caches."""
+        xpos = self.kin.geom_xpos
+        (right_toe, right_heel), (left_toe, left_heel) = self.level_geoms
+        nx, ny, nz = plane_normal(xpos[right_toe].tolist(), xpos[right_heel].tolist(), xpos[left_heel].tolist(),
+                                  xpos[left_toe].tolist())
+        if nz < 0.0:
+            nx, ny = -nx, -ny
+        r00, r01, r10, r11, r20, r21 = rotation
+        ax, ay, az = self.acceleration
+        g = self.gravity
+        seen_x = specific_force[0] - g * nx - (r00 * ax + r10 * ay + r20 * az)
+        seen_y = specific_force[1] - g * ny - (r01 * ax + r11 * ay + r21 * az)
         bx, by = self.accel_bias
         k = self.level_gain
-        self.accel_bias = (float(np.clip(bx + k * (seen[0] - bx), -LEVEL_BIAS_LIMIT, LEVEL_BIAS_LIMIT)),
-                           float(np.clip(by + k * (seen[1] - by), -LEVEL_BIAS_LIMIT, LEVEL_BIAS_LIMIT)))
+        self.accel_bias = (min(max(bx + k * (seen_x - bx), -LEVEL_BIAS_LIMIT), LEVEL_BIAS_LIMIT),
+                           min(max(by + k * (seen_y - by), -LEVEL_BIAS_LIMIT), LEVEL_BIAS_LIMIT))
 
     def snapshot(self) -> EstimatorSnapshot:
         """The filter's whole state (a few numbers: cheap enough for the control thread at a resync)."""

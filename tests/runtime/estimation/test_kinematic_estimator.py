@@ -6,6 +6,8 @@ import math
 import mujoco
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from bruce_hw.attitude import MahonyAttitude
 from bruce_hw.mock import MujocoBackend
@@ -15,7 +17,7 @@ from runtime.control.commands import CommandSchedule
 from runtime.control.mixing import eq8_torque
 from runtime.control.standing import StandingController
 from runtime.estimation import GroundTruthEstimator
-from runtime.estimation.kinematic import IMU_DELAY_S, KinematicEstimator
+from runtime.estimation.kinematic import IMU_DELAY_S, KinematicEstimator, plane_normal
 from runtime.loop.run import run_session
 
 GRAVITY = 9.81
@@ -293,6 +295,29 @@ def test_walks_on_the_kinematic_estimate(config, controller_kind, cmd):
     np.testing.assert_array_less(np.sqrt(np.mean(velocity[:, :2] ** 2, axis=0)), 0.03)
     np.testing.assert_array_less(np.abs(tilt).max(axis=0), 0.5)
     assert np.abs(yaw).max() < 1.0
+
+
+@settings(max_examples=300, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), off_plane=st.floats(0.0, 0.002), length=st.floats(0.03, 0.12),
+       width=st.floats(0.03, 0.2))
+def test_the_feet_planes_normal_is_the_svds_to_round_off(seed, off_plane, length, width):
+    """Four toe and heel centres in their order around the feet (right toe, right heel, left heel, left toe), a few
+    cm apart and up to 2 mm off one plane, anywhere and at any attitude: `plane_normal` (scalar math, for the
+    control thread) gives the least-squares plane's normal that the SVD of the centred points gives."""
+    rng = np.random.default_rng(seed)
+    normal = rng.normal(size=3)
+    normal /= np.linalg.norm(normal)
+    u = np.cross(normal, rng.normal(size=3))
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    corners = [(length / 2, -width / 2), (-length / 2, -width / 2), (-length / 2, width / 2), (length / 2, width / 2)]
+    centre = rng.normal(size=3)
+    points = np.array([centre + (x + rng.uniform(-0.01, 0.01)) * u + (y + rng.uniform(-0.01, 0.01)) * v
+                       + off_plane * rng.normal() * normal for x, y in corners])
+    expected = np.linalg.svd(points - points.mean(axis=0))[2][-1]
+    got = np.array(plane_normal(*points.tolist()))
+    assert abs(np.linalg.norm(got) - 1.0) < 1e-12
+    assert np.linalg.norm(np.cross(got, expected)) < 1e-12  # sin of the angle between them
 
 
 def _levelled_bias(accel_bias, seconds=1.5, level_s=1.0):
