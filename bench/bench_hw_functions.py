@@ -7,12 +7,18 @@ out (start-up). The wrapper itself costs about 1 µs a call, counted in the call
     python bench/bench_hw_functions.py [--seconds 10] [--cmd 0.4,0,0] [--set KEY=VALUE ...]
 
 The stats' sections (`sections_cpu_us`) say which part of the tick costs; this says which function inside it.
+
+`--again`: the policy's network, a pure function of its observation, is called a second time at once on the same
+observation, its result dropped, and that call's CPU counted apart ("again at once"): in the same run and on the
+same tick, what the call costs on warm caches against what it cost as the tick ran it (bench_cold_calls.py: what
+cools them).
 """
 
 from __future__ import annotations
 
 import argparse
 import atexit
+import os
 import subprocess
 import sys
 import tempfile
@@ -47,6 +53,8 @@ WRAPPED = (
     ("bruce_hw.bear_legs", "BearLegs", "_keep", "hw-legs"),
     ("bruce_hw.bear_legs", "BearLegs", "_loss_problem", "hw-legs"),
 )
+PURE = {"OnnxPolicy.__call__"}  # called again at once with --again: the same input gives the same output, no state
+AGAIN = "BENCH_HW_FUNCTIONS_AGAIN"  # the child's environment: --again
 
 
 def child(argv: list[str]) -> int:
@@ -55,7 +63,7 @@ def child(argv: list[str]) -> int:
 
     calls: dict[str, list[tuple[int, int]]] = defaultdict(list)  # label -> (start ns, CPU ns)
 
-    def wrap(owner, name: str, thread: str, label: str) -> None:
+    def wrap(owner, name: str, thread: str, label: str, again: bool) -> None:
         function, cpu, clock, current = getattr(owner, name), time.thread_time_ns, time.monotonic_ns, \
             threading.current_thread
 
@@ -64,12 +72,17 @@ def child(argv: list[str]) -> int:
                 return function(*args, **kwargs)
             start, c0 = clock(), cpu()
             result = function(*args, **kwargs)
-            calls[label].append((start, cpu() - c0))
+            c1 = cpu()
+            calls[label].append((start, c1 - c0))
+            if again:
+                function(*args, **kwargs)
+                calls[label + " again at once"].append((start, cpu() - c1))
             return result
         setattr(owner, name, wrapped)
 
     for module, cls, name, thread in WRAPPED:
-        wrap(getattr(importlib.import_module(module), cls), name, thread, f"{thread}: {cls}.{name}")
+        wrap(getattr(importlib.import_module(module), cls), name, thread, f"{thread}: {cls}.{name}",
+             bool(os.environ.get(AGAIN)) and f"{cls}.{name}" in PURE)
     begin = time.monotonic_ns()
 
     def table() -> None:
@@ -94,6 +107,8 @@ def main() -> None:
     parser.add_argument("--cmd", default=None, metavar="VX,VY,WZ", help="walk at this command (default: stand)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="bruce-run config overrides")
+    parser.add_argument("--again", action="store_true",
+                        help="call the policy's network again at once on the same observation, counted apart")
     args = parser.parse_args()
     from bruce_hw.emulation.process import EmulatorProcess
 
@@ -103,7 +118,8 @@ def main() -> None:
                                        overrides=args.overrides)
         module = argv.index("-m")  # python -m runtime.cli ... -> python this-file --child ...
         argv[module:module + 2] = [str(Path(__file__).resolve()), "--child"]
-        run = subprocess.run(argv, capture_output=True, text=True, timeout=args.seconds + 120)
+        env = dict(os.environ, **({AGAIN: "1"} if args.again else {}))
+        run = subprocess.run(argv, capture_output=True, text=True, timeout=args.seconds + 120, env=env)
     ending = next((line for line in (run.stdout + run.stderr).splitlines()
                    if line.lstrip().startswith("final state")), "")
     print(f"bruce-run --backend hw {'--cmd ' + args.cmd if args.cmd else '--controller standing'}, "
