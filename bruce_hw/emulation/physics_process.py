@@ -9,14 +9,16 @@ devices' process keeps only the devices and a bridge thread; the physics steps `
 and `PHYSICS_NICE`, which every tty worker and device thread preempts, and which holds no lock of theirs.
 
 They meet in shared memory (`_Block`, a sequence counter around each write) at each physics step, in the order the
-in-process plant keeps: before the step the child asks the bridge for the commands (`FETCH`) and waits for them: the
-bridge runs the leg kind's torque law (`LegEmulation.torques`) on the newest measurement and the devices' commands
-of that moment, and reads the servos' goals (`COMMAND`); after the step the child writes what the actuators, the IMU,
-the foot switches and the arm servos measure (`WORLD`) and tells the bridge (`PUBLISH`), which hands it to the
-emulators at once. So the physics acts on the commands of the step's own moment, as in one process. (A bridge that
-exchanged on its own 1-ms clock put the commands and the measurement up to a period behind each: walks then ended on
-the BEARs' joint limits, the loop's latency past what the gait holds.) The operator's commands (place, stand, status)
-go over a pipe.
+in-process plant keeps: before the step the child asks the bridge for the legs' commands (`FETCH`) and waits for
+them: the bridge runs the leg kind's torque law (`LegEmulation.torques`) on the newest measurement and the devices'
+commands of that moment (`COMMAND`); after the step the child writes what the actuators, the IMU and the foot
+switches measure (`WORLD`) and tells the bridge (`PUBLISH`), which hands it to the emulators at once. So the physics
+acts on the commands of the step's own moment, as in one process. (A bridge that exchanged on its own 1-ms clock put
+the commands and the measurement up to a period behind each: walks then ended on the BEARs' joint limits, the loop's
+latency past what the gait holds.) The arms step at their own 50 Hz (`plant.ARM_EVERY_STEPS`), and only then does
+the child ask for the servos' goals (`FETCH_ARMS`) and hand over what they measure (`PUBLISH_ARMS`): the bridge's
+work at every step is the legs' and the sense board's (the servos' goals and states, read and written at every step,
+were 45 % of it). The operator's commands (place, stand, status) go over a pipe.
 """
 
 from __future__ import annotations
@@ -35,7 +37,8 @@ from bruce_hw.types import GroundTruth
 PHYSICS_NICE = 10    # below every thread at normal priority on the machine: tty workers preempt it at once
 START_TIMEOUT_S = 60.0
 REPLY_TIMEOUT_S = 5.0
-FETCH, PUBLISH, DONE = b"f", b"p", b"k"  # the child's requests to the bridge, the bridge's answer to a fetch
+# the child's requests to the bridge, and the bridge's answer to a fetch
+FETCH, PUBLISH, FETCH_ARMS, PUBLISH_ARMS, DONE = b"f", b"p", b"g", b"a", b"k"
 READ_TRIES = 1000  # copies of a shared block before a reader gives up on a writer that died mid-write
 FETCH_TIMEOUT_S = 0.1  # a bridge that does not answer (its process gone): the step goes on with the last commands
 
@@ -97,8 +100,9 @@ class _Block:
 
 # -- the child's side: the emulators as the plant sees them, backed by the shared blocks ---------------------------
 class _Exchange:
-    """The child's end of the per-step exchange: `fetch` asks the bridge for the commands of this moment and waits
-    for them; `publish` tells it a new measurement is in `WORLD` (it does not wait)."""
+    """The child's end of the per-step exchange: `fetch` asks the bridge for the commands of this moment (the legs',
+    or with FETCH_ARMS the servos') and waits for them; `publish` tells it a new measurement is in `WORLD` (the legs'
+    and the sense board's, or with PUBLISH_ARMS the servos'; it does not wait)."""
 
     def __init__(self, world: _Block, command: _Block, request, answer):
         self.world, self.command = world, command
@@ -106,9 +110,9 @@ class _Exchange:
         self._keep = (request, answer)  # the connections own the file descriptors
         self.commands = command.read()  # the newest fetched
 
-    def fetch(self) -> dict[str, np.ndarray]:
+    def fetch(self, what: bytes = FETCH) -> dict[str, np.ndarray]:
         try:
-            os.write(self._request, FETCH)
+            os.write(self._request, what)
             if select.select([self._answer], [], [], FETCH_TIMEOUT_S)[0]:
                 os.read(self._answer, 64)
         except OSError:  # the devices' process is gone: nothing more to fetch
@@ -116,9 +120,9 @@ class _Exchange:
         self.commands = self.command.read() or self.commands
         return self.commands
 
-    def publish(self) -> None:
+    def publish(self, what: bytes = PUBLISH) -> None:
         try:
-            os.write(self._request, PUBLISH)
+            os.write(self._request, what)
         except OSError:
             pass
 
@@ -150,13 +154,14 @@ class _Servos:
         self.exchange = exchange
 
     def goal_joint_positions(self) -> np.ndarray:
-        return self.exchange.commands["arm_goal"]  # fetched at the start of this step
+        return self.exchange.fetch(FETCH_ARMS)["arm_goal"]  # the servos' goals of this moment, at the arms' step
 
     def torque_enabled_all(self) -> np.ndarray:
-        return self.exchange.commands["arm_on"] > 0.5
+        return self.exchange.fetch(FETCH_ARMS)["arm_on"] > 0.5
 
     def set_joint_state(self, q, qd=None) -> None:
         self.exchange.world.write(arm_q=q, arm_qd=0.0 if qd is None else qd)
+        self.exchange.publish(PUBLISH_ARMS)
 
 
 def _child(config: RobotConfig, world_name: str, command_name: str, pipe, request, answer, nice: int) -> None:
@@ -232,10 +237,12 @@ class PhysicsProcess:
         return self
 
     def _bridge(self) -> None:
-        """At the devices' priority, woken by the child: PUBLISH hands the newest measurement to the emulators; FETCH
-        runs the legs' torque law on it with the devices' commands of this moment, reads the servos' goals, writes
-        them to `COMMAND` and answers. The child steps only after the answer, so reading the commands at each step
-        also runs the devices' watchdogs between packets, as in one process."""
+        """At the devices' priority, woken by the child: PUBLISH hands the newest measurement to the legs' and the
+        sense board's emulators; FETCH runs the legs' torque law on it with the devices' commands of this moment,
+        writes the torques to `COMMAND` and answers; at the arms' steps, PUBLISH_ARMS hands the servos what they
+        measure and FETCH_ARMS writes their goals and answers. The child steps only after the answer, so reading the
+        commands at each step also runs the BEARs' watchdogs between packets, and the arms' reads the servos' at
+        50 Hz, as in one process."""
         legs, servos, sense = self.legs, self.dynamixel, self.sense
         request, answer = self._request_r.fileno(), self._answer_w.fileno()
         w = self._world.read()
@@ -255,21 +262,25 @@ class PhysicsProcess:
                     legs.publish(w["m"], w["md"], w["tau"])
                 if sense is not None:
                     sense.set_measurement(accel=w["accel"], gyro=w["gyro"], contacts=w["contacts"] > 0.5)
-                if servos is not None:
-                    servos.set_joint_state(w["arm_q"], w["arm_qd"])
+            if PUBLISH_ARMS in asked and servos is not None:
+                servos.set_joint_state(w["arm_q"], w["arm_qd"])
+            answers = 0
             if FETCH in asked:
                 if legs is not None:
                     tau, enabled, all_off = legs.torques(w["m"], w["md"])
                 else:
                     tau, enabled, all_off = zeros, False, True
-                goal = {}
-                if servos is not None:
-                    goal = {"arm_goal": servos.goal_joint_positions(),
-                            "arm_on": servos.torque_enabled_all().astype(float)}
-                self._command.write(tau=tau, enabled=float(enabled), all_off=float(all_off), **goal)
+                self._command.write(tau=tau, enabled=float(enabled), all_off=float(all_off))
                 self.bridge_cycles += 1
+                answers += asked.count(FETCH)
+            if FETCH_ARMS in asked:
+                if servos is not None:
+                    self._command.write(arm_goal=servos.goal_joint_positions(),
+                                        arm_on=servos.torque_enabled_all().astype(float))
+                answers += asked.count(FETCH_ARMS)
+            if answers:
                 try:
-                    os.write(answer, DONE)
+                    os.write(answer, DONE * answers)
                 except OSError:
                     return
 

@@ -41,3 +41,26 @@ def test_the_physics_process_moves_the_robot_the_host_commands():
         robot.plant.stand(True)  # the operator's command goes to the physics process and back
         assert robot.plant.ground_truth().base_pos[2] > nominal
     assert robot.plant.status()["steps"] > steps  # the counters outlive the process, for the shutdown's summary
+
+
+def test_the_arms_follow_the_hosts_goals_through_the_physics_process():
+    """The arm servos' goals and what they measure cross to the physics process only at the arms' own steps (50 Hz,
+    as in one process): a goal the host writes over the real SDK still moves the servo it reads back, and torque off
+    holds it where it is."""
+    from drivers.dynamixel import DynamixelArms
+
+    config = load_config()
+    with EmulatedRobot(config, physics_process=True) as robot:
+        port = next(o.split("=", 1)[1] for o in robot.port_overrides() if o.startswith("buses.dynamixel.port="))
+        with DynamixelArms.from_config(config, port=port) as arms:
+            start, _ = arms.read()
+            goal = start + np.array([0.2, -0.2, 0.1, -0.1, 0.15, -0.15])
+            arms.enable_torque()  # (which sets the goal to where the servo is)
+            arms.write_positions(goal)
+            assert wait_for(lambda: np.max(np.abs(arms.read()[0] - goal)) < 0.02)
+            arms.disable_torque()
+            held, _ = arms.read()
+            arms.write_positions(start)
+            steps = robot.plant.steps
+            assert wait_for(lambda: robot.plant.steps > steps + 100)  # five arm steps at least
+            np.testing.assert_allclose(arms.read()[0], held, atol=0.005)  # torque off: no motion toward the goal
