@@ -102,9 +102,9 @@ def plane_normal(a: list[float], b: list[float], c: list[float], d: list[float])
     round-off. Newell's normal of the quadrilateral a b c d (half the cross product of its diagonals: exact when
     the four are coplanar) is refined by the adjugate of their scatter matrix S until it stops changing: adj(S) =
     det(S) S^-1 weighs S's eigenvectors by the product of the other two eigenvalues, so each step divides the error's
-    angle by lambda_mid / lambda_min (the in-plane spread over the out-of-plane one, squared: ~10^5 for BRUCE's feet
-    standing, one or two steps), and a rank-2 S (coplanar points) needs no inverse. Four collinear points have no
-    plane (S of rank 1, adj(S) = 0): Newell's vector comes back as it is."""
+    angle by lambda_mid / lambda_min (the in-plane spread over the out-of-plane one, squared; BRUCE's feet standing on
+    the mock, nominal to `harsh` gap: 2-5 steps to the last bit), and a rank-2 S (coplanar points) needs no inverse.
+    Four collinear points have no plane (S of rank 1, adj(S) = 0): Newell's vector comes back as it is."""
     mx, my, mz = ((a[0] + b[0] + c[0] + d[0]) * 0.25, (a[1] + b[1] + c[1] + d[1]) * 0.25,
                   (a[2] + b[2] + c[2] + d[2]) * 0.25)
     sxx = sxy = sxz = syy = syz = szz = 0.0
