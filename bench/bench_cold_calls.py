@@ -26,8 +26,7 @@ import time
 
 import numpy as np
 
-from bruce_hw.config import load_config
-from bruce_hw.mock import MujocoBackend
+from bruce_hw import load_config, make_backend
 from bruce_hw.types import JointCommand
 from runtime.control.controllers import build_controller
 from runtime.control.mixing import eq8_torque
@@ -51,7 +50,7 @@ def main() -> None:
     if args.cpu is not None:
         os.sched_setaffinity(0, {args.cpu})
     config = load_config(overrides=args.overrides)
-    backend = MujocoBackend(config)
+    backend = make_backend("mock", config)  # a standing robot's reading for the calls' inputs
     backend.configure()
     backend.activate()
     state = backend.read()
